@@ -1,0 +1,520 @@
+//! The column's own integrator: an L-stable, stiffly accurate SDIRK method of
+//! order 4 with an embedded order-3 error estimate (Hairer & Wanner, *Solving
+//! ODEs II*, §IV.6, table 6.5, γ = 1/4), applied to the mixed form of Richards'
+//! equation (Celia et al. 1990) with Newton's method on the heads.
+//!
+//! Stage i of a step from t to t + Δt solves, for the heads Hᵢ,
+//!
+//! ```text
+//! Rᵢ(Hᵢ) = w(Hᵢ) − wⁿ − Δt·Σ_{j<i} a_ij·F(H_j) − γ·Δt·F(Hᵢ) = 0
+//! ```
+//!
+//! with w(h) = θ(h) + Ss·h the stored water and F the cell rates of
+//! [`Column::evaluate`]. The method is stiffly accurate (the last row of A is b),
+//! so wⁿ⁺¹ = w(H_s); the water amounts advance by Δt·Σ b_j·G(H_j) with their
+//! rates G. Because Σ dz·F = infiltration − drainage − uptake for any heads,
+//! the water balance changes only by Σ dz·R_s per step, and Newton runs until
+//! |R| ≤ 1e-13: the balance closes to round-off, not to the tolerance.
+//!
+//! The Newton matrix diag(C + Ss) − γ·Δt·∂F/∂h is tridiagonal and solved in
+//! O(n); a backtracking line search keeps Newton from overshooting when a
+//! saturated cell (C = 0) starts to drain. A one-step method needs no restart
+//! when the forcing jumps at a sampling boundary.
+//!
+//! Why not diffsol: `benches/integrator.rs` runs the same column through
+//! diffsol's BDF (the DAE of [`super::diffsol_dae`]); it fails on a column
+//! wetting up to saturation and is several times slower on the moderate case.
+
+// Index loops over cells and stages read like the equations they implement.
+#![allow(clippy::needless_range_loop)]
+
+use super::column::{AMOUNTS, Column, Derivatives, Evaluation, Forcing};
+
+/// Tolerances of the integrator's error control.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tolerances {
+    /// Relative tolerance on the stored water of every cell.
+    pub relative: f64,
+    /// Absolute tolerance on the stored water of every cell [m³/m³].
+    pub absolute: f64,
+}
+
+impl Default for Tolerances {
+    /// 1e-5 relative, 1e-7 absolute: θ then moves by less than 1e-6 when both are
+    /// tightened 100× (`tests/field.rs`).
+    fn default() -> Self {
+        Tolerances {
+            relative: 1e-5,
+            absolute: 1e-7,
+        }
+    }
+}
+
+impl Tolerances {
+    pub fn validate(&self) -> Result<(), String> {
+        let all = [self.relative, self.absolute];
+        if !all.iter().all(|t| t.is_finite() && *t > 0.0) {
+            return Err(format!(
+                "tolerances must be finite and > 0, got relative {} and absolute {}",
+                self.relative, self.absolute
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Integration failed: the step size fell below the smallest allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("integration failed at t = {time} s: {message}")]
+pub struct IntegrationError {
+    pub time: f64,
+    pub message: String,
+}
+
+/// Counters of the work the integrator did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct IntegratorStatistics {
+    /// Accepted steps.
+    pub steps: usize,
+    /// Steps rejected by the error test.
+    pub error_test_failures: usize,
+    /// Steps abandoned because a stage's Newton iteration did not converge.
+    pub newton_failures: usize,
+    /// Newton iterations (each one tridiagonal solve).
+    pub newton_iterations: usize,
+    /// Calls of [`Integrator::advance`].
+    pub sampling_steps: usize,
+}
+
+/// The state the integrator advances: heads and water amounts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColumnState {
+    /// Pressure head of every cell [m].
+    pub heads: Vec<f64>,
+    /// Cumulative infiltration, drainage, uptake, runoff [m].
+    pub amounts: [f64; AMOUNTS],
+}
+
+/// Residual below which Newton stops [m³/m³ of stored water].
+const NEWTON_TOLERANCE: f64 = 1e-13;
+/// Residual below which Newton stops in the inner stages, whose residuals only
+/// perturb the solution (far below the error tolerance), not the balance.
+const STAGE_TOLERANCE: f64 = 1e-10;
+const MAX_NEWTON_ITERATIONS: usize = 25;
+/// Smallest step before giving up [s].
+const MIN_STEP: f64 = 1e-8;
+/// First step of the very first call [s].
+const FIRST_STEP: f64 = 60.0;
+/// Longest first step after the forcing changed [s].
+const RESTART_STEP: f64 = 1000.0;
+
+/// The SDIRK tableau: γ on the diagonal, A strictly below it, b = last row of A
+/// (stiffly accurate), b̂ the embedded order-3 weights.
+const STAGES: usize = 5;
+const GAMMA: f64 = 0.25;
+const A: [[f64; STAGES]; STAGES] = [
+    [0.25, 0.0, 0.0, 0.0, 0.0],
+    [0.5, 0.25, 0.0, 0.0, 0.0],
+    [17.0 / 50.0, -1.0 / 25.0, 0.25, 0.0, 0.0],
+    [371.0 / 1360.0, -137.0 / 2720.0, 15.0 / 544.0, 0.25, 0.0],
+    [25.0 / 24.0, -49.0 / 48.0, 125.0 / 16.0, -85.0 / 12.0, 0.25],
+];
+const B_HAT: [f64; STAGES] = [59.0 / 48.0, -17.0 / 96.0, 225.0 / 32.0, -85.0 / 12.0, 0.0];
+/// Order of the embedded estimate + 1: the step-size controller's exponent is 1/this.
+const ERROR_ORDER: f64 = 4.0;
+
+/// The tableau, for tests of its order conditions.
+pub fn tableau() -> ([[f64; STAGES]; STAGES], [f64; STAGES]) {
+    (A, B_HAT)
+}
+
+/// Advances a column over sampling steps.
+#[derive(Debug, Clone)]
+pub struct Integrator {
+    column: Column,
+    tolerances: Tolerances,
+    statistics: IntegratorStatistics,
+    /// Step size proposed at the end of the last call, the first of the next.
+    next_step: f64,
+    /// Forcing of the last call.
+    last_forcing: Option<Forcing>,
+    work: Workspace,
+}
+
+/// Buffers reused by every step.
+#[derive(Debug, Clone)]
+struct Workspace {
+    eval: Evaluation,
+    /// Stored water at the start of the step.
+    storage: Vec<f64>,
+    /// Cell rates and amount rates of every stage.
+    stage_rates: [Vec<f64>; STAGES],
+    stage_amount_rates: [[f64; AMOUNTS]; STAGES],
+    /// The known part of the stage equation: wⁿ + Δt·Σ_{j<i} a_ij·F_j.
+    known: Vec<f64>,
+    /// Newton iterate, its residual, the update, the last accepted iterate, scratch.
+    trial: Vec<f64>,
+    residual: Vec<f64>,
+    update: Vec<f64>,
+    base: Vec<f64>,
+    scratch: Vec<f64>,
+}
+
+impl Workspace {
+    fn new(n: usize) -> Self {
+        let z = vec![0.0; n];
+        Workspace {
+            eval: Evaluation::new(n),
+            storage: z.clone(),
+            stage_rates: std::array::from_fn(|_| z.clone()),
+            stage_amount_rates: [[0.0; AMOUNTS]; STAGES],
+            known: z.clone(),
+            trial: z.clone(),
+            residual: z.clone(),
+            update: z.clone(),
+            base: z.clone(),
+            scratch: z,
+        }
+    }
+}
+
+enum Step {
+    Accepted { error: f64 },
+    Rejected { error: f64 },
+    NewtonFailed,
+}
+
+impl Integrator {
+    pub fn new(column: Column, tolerances: Tolerances) -> Result<Self, String> {
+        tolerances.validate()?;
+        Ok(Integrator {
+            column,
+            tolerances,
+            statistics: IntegratorStatistics::default(),
+            next_step: FIRST_STEP,
+            last_forcing: None,
+            work: Workspace::new(column.cells()),
+        })
+    }
+
+    pub fn column(&self) -> &Column {
+        &self.column
+    }
+
+    pub fn statistics(&self) -> IntegratorStatistics {
+        self.statistics
+    }
+
+    /// Advances `state` over `duration` seconds under constant `forcing`.
+    /// `time` is only used in error messages. On error `state` is unchanged.
+    pub fn advance(
+        &mut self,
+        state: &mut ColumnState,
+        time: f64,
+        duration: f64,
+        forcing: Forcing,
+    ) -> Result<(), IntegrationError> {
+        let fail = |at: f64, message: String| IntegrationError {
+            time: time + at,
+            message,
+        };
+        if !(duration.is_finite() && duration > 0.0) {
+            return Err(fail(0.0, format!("duration must be > 0 s, got {duration}")));
+        }
+        forcing.validate().map_err(|m| fail(0.0, m))?;
+        let n = self.column.cells();
+        if state.heads.len() != n || state.heads.iter().any(|h| !h.is_finite()) {
+            return Err(fail(0.0, "heads must be finite, one per cell".into()));
+        }
+        let mut heads = state.heads.clone();
+        let mut amounts = state.amounts;
+        let mut t = 0.0;
+        // After a jump in the forcing the top cells go through a transient that
+        // the step proposed in calmer times would overshoot: start short.
+        let mut dt = match self.last_forcing {
+            Some(last) if last == forcing => self.next_step,
+            _ => self.next_step.min(RESTART_STEP),
+        };
+        self.last_forcing = Some(forcing);
+        while t < duration {
+            let remaining = duration - t;
+            let mut this_dt = dt;
+            if this_dt >= remaining * (1.0 - 1e-12) {
+                this_dt = remaining;
+            } else if this_dt > 0.5 * remaining {
+                // Two even steps rather than a long one and a sliver.
+                this_dt = 0.5 * remaining;
+            }
+            match self.try_step(&heads, &forcing, this_dt) {
+                Step::Accepted { error } => {
+                    let w = &self.work;
+                    heads.copy_from_slice(&w.trial);
+                    for (k, amount) in amounts.iter_mut().enumerate() {
+                        let rise: f64 = (0..STAGES)
+                            .map(|j| A[STAGES - 1][j] * w.stage_amount_rates[j][k])
+                            .sum();
+                        *amount += this_dt * rise;
+                    }
+                    t += this_dt;
+                    self.statistics.steps += 1;
+                    let factor = 0.9 * error.max(1e-10).powf(-1.0 / ERROR_ORDER);
+                    let proposal = this_dt * factor.clamp(0.2, 4.0);
+                    // A step shortened to land on the end does not shrink the next.
+                    dt = if this_dt < dt {
+                        proposal.max(dt)
+                    } else {
+                        proposal
+                    };
+                }
+                Step::Rejected { error } => {
+                    self.statistics.error_test_failures += 1;
+                    let factor = 0.9 * error.powf(-1.0 / ERROR_ORDER);
+                    dt = this_dt * factor.clamp(0.1, 0.9);
+                }
+                Step::NewtonFailed => {
+                    self.statistics.newton_failures += 1;
+                    dt = this_dt * 0.25;
+                }
+            }
+            if dt < MIN_STEP {
+                return Err(fail(t, format!("step size fell below {MIN_STEP} s")));
+            }
+        }
+        self.next_step = dt;
+        state.heads = heads;
+        state.amounts = amounts;
+        self.statistics.sampling_steps += 1;
+        Ok(())
+    }
+
+    /// Tries one step of size `dt` from `heads`; on success the new heads are in
+    /// `work.trial` and the stage rates in `work.stage_*`.
+    fn try_step(&mut self, heads: &[f64], forcing: &Forcing, dt: f64) -> Step {
+        let n = self.column.cells();
+        let soil = *self.column.soil();
+        let ss = soil.specific_storage;
+        for i in 0..n {
+            self.work.storage[i] = soil.storage(heads[i]);
+        }
+        self.work.trial.copy_from_slice(heads);
+        for stage in 0..STAGES {
+            {
+                let w = &mut self.work;
+                for i in 0..n {
+                    let mut known = w.storage[i];
+                    for j in 0..stage {
+                        known += dt * A[stage][j] * w.stage_rates[j][i];
+                    }
+                    w.known[i] = known;
+                }
+            }
+            // Starting guess: from the previous stage's heads, the step in stored
+            // water that the stage equation asks for, through the capacity.
+            if stage > 0 {
+                let w = &mut self.work;
+                let prev = &w.stage_rates[stage - 1];
+                for i in 0..n {
+                    let s = &w.eval.states[i];
+                    let water = s.water_content + ss * w.trial[i];
+                    let target = w.known[i] + GAMMA * dt * prev[i];
+                    w.trial[i] += (target - water) / (s.capacity + ss);
+                }
+            }
+            // Only the last stage's residual enters the water balance.
+            let tolerance = if stage + 1 == STAGES {
+                NEWTON_TOLERANCE
+            } else {
+                STAGE_TOLERANCE
+            };
+            if !self.solve_stage(forcing, GAMMA * dt, tolerance) {
+                return Step::NewtonFailed;
+            }
+            let w = &mut self.work;
+            w.stage_rates[stage].copy_from_slice(&w.eval.storage);
+            w.stage_amount_rates[stage] = w.eval.amounts;
+        }
+        // Embedded estimate: Δt·Σ (b_j − b̂_j)·F_j, scaled per cell.
+        let w = &self.work;
+        let tol = self.tolerances;
+        let mut sum = 0.0;
+        for i in 0..n {
+            let mut e = 0.0;
+            for j in 0..STAGES {
+                e += (A[STAGES - 1][j] - B_HAT[j]) * w.stage_rates[j][i];
+            }
+            let water = w.eval.states[i].water_content + ss * w.trial[i];
+            let scale = tol.absolute + tol.relative * water.abs().max(w.storage[i].abs());
+            let r = dt * e / scale;
+            sum += r * r;
+        }
+        let error = (sum / n as f64).sqrt();
+        if error.is_finite() && error <= 1.0 {
+            Step::Accepted { error }
+        } else {
+            Step::Rejected {
+                error: if error.is_finite() { error } else { 1e6 },
+            }
+        }
+    }
+
+    /// Newton with a backtracking line search on max|R| for one stage:
+    /// w(H) − known − γΔt·F(H) = 0, starting from `work.trial`. On success
+    /// `work.eval` holds the evaluation at the solution.
+    fn solve_stage(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
+        let n = self.column.cells();
+        let ss = self.column.soil().specific_storage;
+        let column = self.column;
+        let residual = |w: &mut Workspace| -> f64 {
+            column.evaluate(&w.trial, forcing, &mut w.eval, Derivatives::Included);
+            let mut norm = 0.0f64;
+            for i in 0..n {
+                let water = w.eval.states[i].water_content + ss * w.trial[i];
+                w.residual[i] = water - w.known[i] - gamma_dt * w.eval.storage[i];
+                norm = norm.max(w.residual[i].abs());
+            }
+            if norm.is_finite() {
+                norm
+            } else {
+                f64::INFINITY
+            }
+        };
+        let w = &mut self.work;
+        let mut norm = residual(w);
+        let mut iterations = 0;
+        while norm > tolerance {
+            if iterations == MAX_NEWTON_ITERATIONS || !norm.is_finite() {
+                return false;
+            }
+            iterations += 1;
+            self.statistics.newton_iterations += 1;
+            // (diag(C + Ss) − γΔt·T)·δ = R, T tridiagonal; then H ← H − λ·δ.
+            let e = &w.eval;
+            let ok = solve_tridiagonal(
+                |i| -gamma_dt * e.lower[i],
+                |i| e.states[i].capacity + ss - gamma_dt * e.diagonal[i],
+                |i| -gamma_dt * e.upper[i],
+                &w.residual,
+                &mut w.update,
+                &mut w.scratch,
+            );
+            if !ok {
+                return false;
+            }
+            w.base.copy_from_slice(&w.trial);
+            let mut lambda = 1.0;
+            loop {
+                for i in 0..n {
+                    w.trial[i] = w.base[i] - lambda * w.update[i];
+                }
+                let next = residual(w);
+                if next <= tolerance || next < (1.0 - 1e-4 * lambda) * norm {
+                    norm = next;
+                    break;
+                }
+                lambda *= 0.5;
+                if lambda < 1e-12 {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+}
+
+/// Solves the tridiagonal system with sub-diagonal `a(i)` (row i, column i−1),
+/// diagonal `b(i)` and super-diagonal `c(i)` by the Thomas algorithm. Returns
+/// false if a pivot vanishes (the Newton matrix is then treated as singular).
+fn solve_tridiagonal(
+    a: impl Fn(usize) -> f64,
+    b: impl Fn(usize) -> f64,
+    c: impl Fn(usize) -> f64,
+    rhs: &[f64],
+    x: &mut [f64],
+    scratch: &mut [f64],
+) -> bool {
+    let n = rhs.len();
+    let mut pivot = b(0);
+    if pivot.abs() < 1e-300 || !pivot.is_finite() {
+        return false;
+    }
+    x[0] = rhs[0] / pivot;
+    for i in 1..n {
+        scratch[i] = c(i - 1) / pivot;
+        pivot = b(i) - a(i) * scratch[i];
+        if pivot.abs() < 1e-300 || !pivot.is_finite() {
+            return false;
+        }
+        x[i] = (rhs[i] - a(i) * x[i - 1]) / pivot;
+    }
+    for i in (0..n - 1).rev() {
+        x[i] -= scratch[i + 1] * x[i + 1];
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The order conditions up to order 4 for b (= last row of A) and up to 3 for b̂.
+    #[test]
+    fn tableau_satisfies_the_order_conditions() {
+        let c: Vec<f64> = A.iter().map(|row| row.iter().sum()).collect();
+        let b = A[STAGES - 1];
+        let dot = |x: &[f64], y: &[f64]| x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+        let ac = |v: &[f64]| -> Vec<f64> { A.iter().map(|row| dot(row, v)).collect() };
+        let c2: Vec<f64> = c.iter().map(|x| x * x).collect();
+        let c3: Vec<f64> = c.iter().map(|x| x * x * x).collect();
+        let ac_ = ac(&c);
+        let ac2 = ac(&c2);
+        let aac = ac(&ac_);
+        let cac: Vec<f64> = c.iter().zip(&ac_).map(|(x, y)| x * y).collect();
+        let checks = |w: &[f64], order: usize| {
+            let mut conditions = vec![(dot(w, &[1.0; STAGES]), 1.0), (dot(w, &c), 0.5)];
+            if order >= 3 {
+                conditions.push((dot(w, &c2), 1.0 / 3.0));
+                conditions.push((dot(w, &ac_), 1.0 / 6.0));
+            }
+            if order >= 4 {
+                conditions.push((dot(w, &c3), 0.25));
+                conditions.push((dot(w, &cac), 1.0 / 8.0));
+                conditions.push((dot(w, &ac2), 1.0 / 12.0));
+                conditions.push((dot(w, &aac), 1.0 / 24.0));
+            }
+            for (k, (got, want)) in conditions.into_iter().enumerate() {
+                assert!((got - want).abs() < 1e-12, "condition {k}: {got} vs {want}");
+            }
+        };
+        checks(&b, 4);
+        checks(&B_HAT, 3);
+        assert!((c[STAGES - 1] - 1.0).abs() < 1e-15);
+        for (i, row) in A.iter().enumerate() {
+            assert_eq!(row[i], GAMMA);
+        }
+    }
+
+    #[test]
+    fn thomas_solves_a_known_system() {
+        // [[4,1,0],[1,4,1],[0,1,4]]·x = [5,6,5] has x = [1,1,1].
+        let (mut x, mut s) = (vec![0.0; 3], vec![0.0; 3]);
+        assert!(solve_tridiagonal(
+            |_| 1.0,
+            |_| 4.0,
+            |_| 1.0,
+            &[5.0, 6.0, 5.0],
+            &mut x,
+            &mut s
+        ));
+        for v in &x {
+            assert!((v - 1.0).abs() < 1e-14);
+        }
+        assert!(!solve_tridiagonal(
+            |_| 0.0,
+            |_| 0.0,
+            |_| 0.0,
+            &[1.0; 3],
+            &mut x,
+            &mut s
+        ));
+    }
+}

@@ -1,0 +1,1 @@
+//! Neural-network surrogates of the soil column (MODEL.md §3).

@@ -1,0 +1,192 @@
+//! The `rootzone simulate` command, run as the real binary.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn rootzone(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rootzone"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+fn data(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("data")
+        .join(name)
+        .display()
+        .to_string()
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> String {
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path.display().to_string()
+}
+
+fn schedule(steps: usize, rate: f64) -> String {
+    let mut text = String::from("step,irrigation_m_per_s\n");
+    for k in 0..steps {
+        text.push_str(&format!("{k},{rate}\n"));
+    }
+    text
+}
+
+const COLUMNS: &str = "step,hour,irrigation_m_per_s,et0_mm,precip_mm,theta,theta_measured,\
+storage_mm,infiltration_mm,runoff_mm,drainage_mm,uptake_mm";
+
+#[test]
+fn simulate_writes_one_row_per_step_with_a_closed_balance() {
+    let dir = tempfile::tempdir().unwrap();
+    let irrigation = write(dir.path(), "irr.csv", &schedule(96, 2e-7));
+    let out = dir.path().join("out.csv");
+    let result = rootzone(&[
+        "simulate",
+        "--weather",
+        &data("weather-rain.csv"),
+        "--irrigation",
+        &irrigation,
+        "--steps",
+        "24",
+        "--measurement-noise",
+        "0.05",
+        "--seed",
+        "4",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        result.status.success(),
+        "{}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let text = std::fs::read_to_string(&out).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next().unwrap(), COLUMNS);
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 24);
+    let initial_storage =
+        26.0 * (0.5 / 26.0) * rootzone::soil::VanGenuchten::SANDY_LOAM.storage(-0.2) * 1e3;
+    for (k, r) in rows.iter().enumerate() {
+        assert_eq!(r[0], k as f64);
+        assert_eq!(r[1], 2.0 * (k + 1) as f64);
+        assert!((r[6] / r[5] - 1.0).abs() <= 0.05 + 1e-6);
+        // storage − initial = infiltration − drainage − uptake (mm, printed to 1e-6)
+        let balance = r[7] - initial_storage - (r[8] - r[10] - r[11]);
+        assert!(balance.abs() < 1e-5, "row {k}: {balance}");
+        // 2e-7 m/s over 2 h is 1.44 mm per step; with the rain, all of it infiltrates.
+        let supplied: f64 = rows[..=k].iter().map(|r| 1.44 + r[4]).sum();
+        assert!(
+            (r[8] - supplied).abs() < 1e-5,
+            "row {k}: {} vs {supplied}",
+            r[8]
+        );
+        assert_eq!(r[9], 0.0);
+    }
+}
+
+#[test]
+fn simulate_without_out_writes_to_stdout() {
+    let dir = tempfile::tempdir().unwrap();
+    let irrigation = write(dir.path(), "irr.csv", &schedule(3, 0.0));
+    let result = rootzone(&[
+        "simulate",
+        "--weather",
+        &data("weather-dry.csv"),
+        "--irrigation",
+        &irrigation,
+        "--soil",
+        "loam",
+    ]);
+    assert!(result.status.success());
+    let text = String::from_utf8(result.stdout).unwrap();
+    assert_eq!(text.lines().count(), 4);
+    assert_eq!(text.lines().next().unwrap(), COLUMNS);
+}
+
+/// Each bad input: exit code 2, one line naming the file (and line and value
+/// where there is one), and no output file.
+#[test]
+fn bad_input_exits_2_with_a_clear_message_and_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = write(dir.path(), "good.csv", &schedule(96, 1e-7));
+    let negative = write(
+        dir.path(),
+        "neg.csv",
+        "step,irrigation_m_per_s\n0,1e-7\n1,-2e-7\n",
+    );
+    let text = write(dir.path(), "text.csv", "step,irrigation_m_per_s\n0,abc\n");
+    let nan = write(
+        dir.path(),
+        "nan.csv",
+        "step,irrigation_m_per_s\n0,1e-7\n1,1e-7\n2,NaN\n",
+    );
+    let ragged = write(
+        dir.path(),
+        "ragged.csv",
+        "step,irrigation_m_per_s\n0,1e-7,3\n",
+    );
+    let long = write(dir.path(), "long.csv", &schedule(200, 1e-7));
+    let weather = data("weather-dry.csv");
+    let missing = dir.path().join("nope.csv").display().to_string();
+    let cases: Vec<(Vec<&str>, Vec<String>)> = vec![
+        (
+            vec!["--irrigation", &negative],
+            vec![format!("{negative}:3"), "-2e-7".into()],
+        ),
+        (
+            vec!["--irrigation", &text],
+            vec![format!("{text}:2"), "'abc'".into()],
+        ),
+        (
+            vec!["--irrigation", &nan],
+            vec![format!("{nan}:4"), "NaN".into()],
+        ),
+        (vec!["--irrigation", &ragged], vec![format!("{ragged}:2")]),
+        (vec!["--irrigation", &missing], vec![missing.clone()]),
+        (
+            vec!["--irrigation", &long],
+            vec![format!("{weather}:98"), "96 steps, 200".into()],
+        ),
+        (
+            vec!["--irrigation", &long, "--steps", "97"],
+            vec![weather.clone(), "97".into()],
+        ),
+        (
+            vec!["--irrigation", &good, "--steps", "97"],
+            vec![format!("{good}:98"), "97".into()],
+        ),
+        (
+            vec!["--irrigation", &good, "--soil", "peat"],
+            vec!["peat".into()],
+        ),
+        (
+            vec!["--irrigation", &good, "--process-noise=-1"],
+            vec!["process noise".into()],
+        ),
+    ];
+    for (extra, needles) in cases {
+        let out = dir.path().join("out.csv");
+        let mut args = vec![
+            "simulate",
+            "--weather",
+            &weather,
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(extra.iter().copied());
+        let result = rootzone(&args);
+        let stderr = String::from_utf8_lossy(&result.stderr);
+        assert_eq!(result.status.code(), Some(2), "{args:?}: {stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+        for needle in &needles {
+            assert!(
+                stderr.contains(needle.as_str()),
+                "{args:?}: '{stderr}' lacks '{needle}'"
+            );
+        }
+        assert!(!out.exists(), "{args:?} left an output file");
+    }
+}
