@@ -1,0 +1,3 @@
+//! The paper's experiments: tables, figures and reports.
+
+pub mod plot;
