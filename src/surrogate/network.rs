@@ -1,0 +1,703 @@
+//! The networks: [`SequenceNet`] (stacked LSTM + dense head over a window),
+//! [`Mlp`] (the combiner 3 → h → h → 1), [`TwoLayerNet`] (M1–M3 and M_A) and
+//! [`Surrogate`], either of the two prediction models.
+//!
+//! All networks work on scaled quantities (see [`super::scaling`]) and keep
+//! their parameters in one flat `Vec<f64>`, layer after layer.
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::dense::{Dense, sigmoid};
+use super::evaluate::WINDOW;
+use super::lstm::{Lstm, LstmTape};
+
+/// Input features per window step: (ū, ȳ).
+pub const FEATURES: usize = 2;
+/// Inputs of the combiner M_A: the three sub-model predictions.
+pub const COMBINER_INPUTS: usize = 3;
+/// Largest hidden size accepted (a sanity bound for files).
+pub const MAX_HIDDEN: usize = 1024;
+
+/// A parameter vector of the wrong length was given.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("expected {expected} parameters, found {found}")]
+pub struct ParamLengthError {
+    pub expected: usize,
+    pub found: usize,
+}
+
+/// Why an architecture is not accepted.
+pub(crate) fn lstm_architecture_problem(hidden: &[usize]) -> Option<String> {
+    if hidden.is_empty() || hidden.len() > 2 {
+        Some(format!(
+            "1 or 2 LSTM layers expected, found {}",
+            hidden.len()
+        ))
+    } else if hidden.iter().any(|&h| h == 0 || h > MAX_HIDDEN) {
+        Some(format!(
+            "LSTM hidden sizes must be in 1..={MAX_HIDDEN}, found {hidden:?}"
+        ))
+    } else {
+        None
+    }
+}
+
+fn uniform_draw(seed: u64) -> impl FnMut() -> f64 {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    move || rng.random::<f64>()
+}
+
+fn set_checked(dst: &mut [f64], src: &[f64]) -> Result<(), ParamLengthError> {
+    if dst.len() != src.len() {
+        return Err(ParamLengthError {
+            expected: dst.len(),
+            found: src.len(),
+        });
+    }
+    dst.copy_from_slice(src);
+    Ok(())
+}
+
+/// Stacked LSTM (1 or 2 layers) over a window of [`WINDOW`] steps of
+/// (ū, ȳ), then a dense head from the last hidden state to one output ȳ_next.
+///
+/// Parameters: layer 1, (layer 2), head (see [`super::lstm`] and
+/// [`super::dense`] for the layouts).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SequenceNet {
+    layers: Vec<Lstm>,
+    head: Dense,
+    params: Vec<f64>,
+}
+
+/// Forward/backward workspace of a [`SequenceNet`].
+#[derive(Debug, Clone)]
+pub struct SequenceWorkspace {
+    tapes: Vec<LstmTape>,
+    /// ∂L/∂h of every step, one buffer per layer.
+    dh: Vec<Vec<f64>>,
+    /// The window, (ū, ȳ) per step.
+    pub(crate) x: Vec<f64>,
+    /// ∂ŷ/∂x of the window, filled by [`SequenceNet::input_gradient`].
+    pub(crate) dx: Vec<f64>,
+}
+
+impl SequenceNet {
+    /// A network with LSTM layers of the given hidden sizes (1 or 2 layers),
+    /// Glorot-uniform weights drawn from `ChaCha8Rng::seed_from_u64(seed)`.
+    ///
+    /// # Panics
+    /// If the architecture is not 1–2 layers of hidden size 1..=[`MAX_HIDDEN`].
+    pub fn new(hidden: &[usize], seed: u64) -> SequenceNet {
+        if let Some(problem) = lstm_architecture_problem(hidden) {
+            panic!("{problem}");
+        }
+        let mut layers = Vec::with_capacity(hidden.len());
+        let mut n_in = FEATURES;
+        for &h in hidden {
+            layers.push(Lstm { n_in, hidden: h });
+            n_in = h;
+        }
+        let head = Dense { n_in, n_out: 1 };
+        let n = layers.iter().map(Lstm::n_params).sum::<usize>() + head.n_params();
+        let mut net = SequenceNet {
+            layers,
+            head,
+            params: vec![0.0; n],
+        };
+        let mut draw = uniform_draw(seed);
+        let mut offset = 0;
+        for layer in &net.layers {
+            let len = layer.n_params();
+            layer.init(&mut net.params[offset..offset + len], &mut draw);
+            offset += len;
+        }
+        net.head.init(&mut net.params[offset..], &mut draw);
+        net
+    }
+
+    /// Hidden sizes of the LSTM layers, bottom first.
+    pub fn hidden_sizes(&self) -> Vec<usize> {
+        self.layers.iter().map(|l| l.hidden).collect()
+    }
+
+    pub fn n_params(&self) -> usize {
+        self.params.len()
+    }
+
+    pub fn params(&self) -> &[f64] {
+        &self.params
+    }
+
+    pub fn set_params(&mut self, params: &[f64]) -> Result<(), ParamLengthError> {
+        set_checked(&mut self.params, params)
+    }
+
+    pub(crate) fn params_mut(&mut self) -> &mut [f64] {
+        &mut self.params
+    }
+
+    pub fn workspace(&self) -> SequenceWorkspace {
+        SequenceWorkspace {
+            tapes: self.layers.iter().map(|l| l.tape(WINDOW)).collect(),
+            dh: self
+                .layers
+                .iter()
+                .map(|l| vec![0.0; WINDOW * l.hidden])
+                .collect(),
+            x: vec![0.0; WINDOW * FEATURES],
+            dx: vec![0.0; WINDOW * FEATURES],
+        }
+    }
+
+    /// ȳ_next from a window of scaled inputs `u` and outputs `y` (each
+    /// [`WINDOW`] long, oldest first; step τ of the window is (u[τ], y[τ])).
+    pub fn predict(&self, ws: &mut SequenceWorkspace, u: &[f64], y: &[f64]) -> f64 {
+        fill_window(&mut ws.x, u, y);
+        self.forward(ws)
+    }
+
+    /// Forward pass on the window already in `ws.x`.
+    pub(crate) fn forward(&self, ws: &mut SequenceWorkspace) -> f64 {
+        let mut offset = 0;
+        for (l, layer) in self.layers.iter().enumerate() {
+            let p = &self.params[offset..offset + layer.n_params()];
+            offset += layer.n_params();
+            let (below, here) = ws.tapes.split_at_mut(l);
+            let x = if l == 0 {
+                &ws.x[..]
+            } else {
+                &below[l - 1].h[..]
+            };
+            layer.forward(p, x, &mut here[0]);
+        }
+        let last = &ws.tapes[self.layers.len() - 1];
+        let h = self.head.n_in;
+        let mut out = [0.0];
+        self.head.forward(
+            &self.params[offset..],
+            &last.h[(WINDOW - 1) * h..],
+            &mut out,
+        );
+        out[0]
+    }
+
+    /// Backward pass after [`forward`](Self::forward) for the output gradient
+    /// `dout` = ∂L/∂ŷ: adds ∂L/∂θ to `grad` when given, and writes ∂L/∂x of
+    /// the window into `ws.dx` when `want_dx`.
+    pub(crate) fn backward(
+        &self,
+        ws: &mut SequenceWorkspace,
+        dout: f64,
+        mut grad: Option<&mut [f64]>,
+        want_dx: bool,
+    ) {
+        let n_layers = self.layers.len();
+        let head_offset = self.params.len() - self.head.n_params();
+        // The head sees only the last hidden state.
+        let top = n_layers - 1;
+        let h_top = self.head.n_in;
+        {
+            let dh = &mut ws.dh[top];
+            dh.fill(0.0);
+            let last_h = &ws.tapes[top].h[(WINDOW - 1) * h_top..];
+            self.head.backward(
+                &self.params[head_offset..],
+                last_h,
+                &[dout],
+                grad.as_deref_mut().map(|g| &mut g[head_offset..]),
+                Some(&mut dh[(WINDOW - 1) * h_top..]),
+            );
+        }
+        let mut offset = head_offset;
+        for l in (0..n_layers).rev() {
+            let layer = self.layers[l];
+            offset -= layer.n_params();
+            let p = &self.params[offset..offset + layer.n_params()];
+            let g = grad
+                .as_deref_mut()
+                .map(|g| &mut g[offset..offset + layer.n_params()]);
+            let (below, here) = ws.tapes.split_at_mut(l);
+            let (dh_below, dh_here) = ws.dh.split_at_mut(l);
+            if l == 0 {
+                let dx = if want_dx { Some(&mut ws.dx[..]) } else { None };
+                layer.backward(p, &ws.x, &dh_here[0], &mut here[0], g, dx);
+            } else {
+                layer.backward(
+                    p,
+                    &below[l - 1].h,
+                    &dh_here[0],
+                    &mut here[0],
+                    g,
+                    Some(&mut dh_below[l - 1][..]),
+                );
+            }
+        }
+    }
+
+    /// ∂ŷ/∂x of the window last passed forward, into `ws.dx` (step τ's
+    /// (∂ŷ/∂ū, ∂ŷ/∂ȳ) at 2τ, 2τ + 1).
+    pub(crate) fn input_gradient(&self, ws: &mut SequenceWorkspace) {
+        self.backward(ws, 1.0, None, true);
+    }
+}
+
+/// Interleaves `u` and `y` into `x` = (u₀, y₀, u₁, y₁, …).
+pub(crate) fn fill_window(x: &mut [f64], u: &[f64], y: &[f64]) {
+    for ((pair, &ui), &yi) in x.chunks_exact_mut(FEATURES).zip(u).zip(y) {
+        pair[0] = ui;
+        pair[1] = yi;
+    }
+}
+
+/// Fully connected net 3 → h (sigmoid) → h (sigmoid) → 1 (linear): the
+/// combiner M_A.
+///
+/// ```text
+/// z₁ = σ(W₁·x + b₁),  z₂ = σ(W₂·z₁ + b₂),  ŷ = w₃·z₂ + b₃
+/// ```
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mlp {
+    layers: [Dense; 3],
+    params: Vec<f64>,
+}
+
+/// Forward/backward workspace of an [`Mlp`].
+#[derive(Debug, Clone)]
+pub struct MlpWorkspace {
+    pub(crate) x: [f64; COMBINER_INPUTS],
+    z1: Vec<f64>,
+    z2: Vec<f64>,
+    d1: Vec<f64>,
+    d2: Vec<f64>,
+    pub(crate) dx: [f64; COMBINER_INPUTS],
+}
+
+impl Mlp {
+    /// Hidden size `hidden` in both layers; Glorot-uniform weights from `seed`.
+    ///
+    /// # Panics
+    /// If `hidden` is not in 1..=[`MAX_HIDDEN`].
+    pub fn new(hidden: usize, seed: u64) -> Mlp {
+        assert!(
+            (1..=MAX_HIDDEN).contains(&hidden),
+            "MLP hidden size must be in 1..={MAX_HIDDEN}, found {hidden}"
+        );
+        let layers = [
+            Dense {
+                n_in: COMBINER_INPUTS,
+                n_out: hidden,
+            },
+            Dense {
+                n_in: hidden,
+                n_out: hidden,
+            },
+            Dense {
+                n_in: hidden,
+                n_out: 1,
+            },
+        ];
+        let n = layers.iter().map(Dense::n_params).sum();
+        let mut mlp = Mlp {
+            layers,
+            params: vec![0.0; n],
+        };
+        let mut draw = uniform_draw(seed);
+        let mut offset = 0;
+        for layer in &mlp.layers {
+            layer.init(
+                &mut mlp.params[offset..offset + layer.n_params()],
+                &mut draw,
+            );
+            offset += layer.n_params();
+        }
+        mlp
+    }
+
+    pub fn hidden(&self) -> usize {
+        self.layers[0].n_out
+    }
+
+    pub fn n_params(&self) -> usize {
+        self.params.len()
+    }
+
+    pub fn params(&self) -> &[f64] {
+        &self.params
+    }
+
+    pub fn set_params(&mut self, params: &[f64]) -> Result<(), ParamLengthError> {
+        set_checked(&mut self.params, params)
+    }
+
+    pub(crate) fn params_mut(&mut self) -> &mut [f64] {
+        &mut self.params
+    }
+
+    pub fn workspace(&self) -> MlpWorkspace {
+        let h = self.hidden();
+        MlpWorkspace {
+            x: [0.0; COMBINER_INPUTS],
+            z1: vec![0.0; h],
+            z2: vec![0.0; h],
+            d1: vec![0.0; h],
+            d2: vec![0.0; h],
+            dx: [0.0; COMBINER_INPUTS],
+        }
+    }
+
+    fn offsets(&self) -> [usize; 4] {
+        let a = self.layers[0].n_params();
+        let b = a + self.layers[1].n_params();
+        [0, a, b, b + self.layers[2].n_params()]
+    }
+
+    /// ŷ for the inputs `x`.
+    pub fn predict(&self, ws: &mut MlpWorkspace, x: [f64; COMBINER_INPUTS]) -> f64 {
+        ws.x = x;
+        self.forward(ws)
+    }
+
+    /// Forward pass on `ws.x`.
+    pub(crate) fn forward(&self, ws: &mut MlpWorkspace) -> f64 {
+        let o = self.offsets();
+        let p = &self.params;
+        self.layers[0].forward(&p[o[0]..o[1]], &ws.x, &mut ws.z1);
+        ws.z1.iter_mut().for_each(|v| *v = sigmoid(*v));
+        self.layers[1].forward(&p[o[1]..o[2]], &ws.z1, &mut ws.z2);
+        ws.z2.iter_mut().for_each(|v| *v = sigmoid(*v));
+        let mut out = [0.0];
+        self.layers[2].forward(&p[o[2]..o[3]], &ws.z2, &mut out);
+        out[0]
+    }
+
+    /// Backward pass after [`forward`](Self::forward) for `dout` = ∂L/∂ŷ: adds
+    /// ∂L/∂θ to `grad` when given and writes ∂L/∂x into `ws.dx`
+    /// (σ' = σ(1 − σ) at each hidden unit).
+    pub(crate) fn backward(&self, ws: &mut MlpWorkspace, dout: f64, mut grad: Option<&mut [f64]>) {
+        let o = self.offsets();
+        let p = &self.params;
+        let (g0, g1, g2) = match grad.take() {
+            Some(g) => {
+                let (g0, rest) = g.split_at_mut(o[1]);
+                let (g1, g2) = rest.split_at_mut(o[2] - o[1]);
+                (Some(g0), Some(g1), Some(g2))
+            }
+            None => (None, None, None),
+        };
+        self.layers[2].backward(&p[o[2]..o[3]], &ws.z2, &[dout], g2, Some(&mut ws.d2[..]));
+        for (d, z) in ws.d2.iter_mut().zip(&ws.z2) {
+            *d *= z * (1.0 - z);
+        }
+        self.layers[1].backward(&p[o[1]..o[2]], &ws.z1, &ws.d2, g1, Some(&mut ws.d1[..]));
+        for (d, z) in ws.d1.iter_mut().zip(&ws.z1) {
+            *d *= z * (1.0 - z);
+        }
+        self.layers[0].backward(&p[o[0]..o[1]], &ws.x, &ws.d1, g0, Some(&mut ws.dx[..]));
+    }
+}
+
+/// The two-layer model: sub-models M1–M3 each predict ȳ_next from the same
+/// window, the combiner M_A maps their three predictions to the final ȳ_next.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TwoLayerNet {
+    pub sub_models: [SequenceNet; 3],
+    pub combiner: Mlp,
+}
+
+/// One prediction model: the single (benchmark) LSTM or the two-layer model.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Surrogate {
+    Single(SequenceNet),
+    TwoLayer(TwoLayerNet),
+}
+
+/// Workspace of a [`Surrogate`] for one window: prediction and ∂ŷ/∂window.
+#[derive(Debug, Clone)]
+pub(crate) struct SurrogateWorkspace {
+    subs: Vec<SequenceWorkspace>,
+    combiner: Option<MlpWorkspace>,
+    /// ∂ŷ/∂x of the window, (ū, ȳ) interleaved.
+    pub dx: Vec<f64>,
+}
+
+impl Surrogate {
+    pub fn n_params(&self) -> usize {
+        match self {
+            Surrogate::Single(net) => net.n_params(),
+            Surrogate::TwoLayer(m) => {
+                m.sub_models
+                    .iter()
+                    .map(SequenceNet::n_params)
+                    .sum::<usize>()
+                    + m.combiner.n_params()
+            }
+        }
+    }
+
+    /// All parameters, concatenated (two-layer: M1, M2, M3, M_A).
+    pub fn params(&self) -> Vec<f64> {
+        match self {
+            Surrogate::Single(net) => net.params().to_vec(),
+            Surrogate::TwoLayer(m) => {
+                let mut p = Vec::with_capacity(self.n_params());
+                for s in &m.sub_models {
+                    p.extend_from_slice(s.params());
+                }
+                p.extend_from_slice(m.combiner.params());
+                p
+            }
+        }
+    }
+
+    /// Sets all parameters from the concatenation [`params`](Self::params) returns.
+    pub fn set_params(&mut self, params: &[f64]) -> Result<(), ParamLengthError> {
+        let expected = self.n_params();
+        if params.len() != expected {
+            return Err(ParamLengthError {
+                expected,
+                found: params.len(),
+            });
+        }
+        match self {
+            Surrogate::Single(net) => net.set_params(params),
+            Surrogate::TwoLayer(m) => {
+                let mut offset = 0;
+                for s in &mut m.sub_models {
+                    let n = s.n_params();
+                    s.set_params(&params[offset..offset + n])?;
+                    offset += n;
+                }
+                m.combiner.set_params(&params[offset..])
+            }
+        }
+    }
+
+    pub(crate) fn workspace(&self) -> SurrogateWorkspace {
+        let (subs, combiner) = match self {
+            Surrogate::Single(net) => (vec![net.workspace()], None),
+            Surrogate::TwoLayer(m) => (
+                m.sub_models.iter().map(SequenceNet::workspace).collect(),
+                Some(m.combiner.workspace()),
+            ),
+        };
+        SurrogateWorkspace {
+            subs,
+            combiner,
+            dx: vec![0.0; WINDOW * FEATURES],
+        }
+    }
+
+    /// ȳ_next for the window `x` ((ū, ȳ) interleaved, [`WINDOW`] steps).
+    pub(crate) fn forward(&self, ws: &mut SurrogateWorkspace, x: &[f64]) -> f64 {
+        match self {
+            Surrogate::Single(net) => {
+                let s = &mut ws.subs[0];
+                s.x.copy_from_slice(x);
+                net.forward(s)
+            }
+            Surrogate::TwoLayer(m) => {
+                let Some(c) = ws.combiner.as_mut() else {
+                    unreachable!("two-layer workspace has a combiner")
+                };
+                for ((net, s), xi) in m.sub_models.iter().zip(&mut ws.subs).zip(&mut c.x) {
+                    s.x.copy_from_slice(x);
+                    *xi = net.forward(s);
+                }
+                m.combiner.forward(c)
+            }
+        }
+    }
+
+    /// ∂ŷ/∂x of the window last passed to [`forward`](Self::forward), into `ws.dx`.
+    pub(crate) fn input_gradient(&self, ws: &mut SurrogateWorkspace) {
+        match self {
+            Surrogate::Single(net) => {
+                net.input_gradient(&mut ws.subs[0]);
+                ws.dx.copy_from_slice(&ws.subs[0].dx);
+            }
+            Surrogate::TwoLayer(m) => {
+                let Some(c) = ws.combiner.as_mut() else {
+                    unreachable!("two-layer workspace has a combiner")
+                };
+                m.combiner.backward(c, 1.0, None);
+                ws.dx.fill(0.0);
+                for ((net, s), &dz) in m.sub_models.iter().zip(&mut ws.subs).zip(&c.dx) {
+                    net.backward(s, dz, None, true);
+                    for (d, v) in ws.dx.iter_mut().zip(&s.dx) {
+                        *d += v;
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// A window of plausible scaled values, deterministic in `seed`.
+    pub(crate) fn random_window(seed: u64) -> (Vec<f64>, Vec<f64>) {
+        let mut draw = uniform_draw(seed);
+        let u = (0..WINDOW).map(|_| draw()).collect();
+        let y = (0..WINDOW).map(|_| 0.2 + 0.6 * draw()).collect();
+        (u, y)
+    }
+
+    /// Parameters perturbed away from the initialisation so that no gradient
+    /// is trivially zero (biases especially).
+    pub(crate) fn jiggle(p: &mut [f64], seed: u64, size: f64) {
+        let mut draw = uniform_draw(seed);
+        for v in p {
+            *v += size * (2.0 * draw() - 1.0);
+        }
+    }
+
+    fn check_sequence_gradients(hidden: &[usize]) {
+        let mut net = SequenceNet::new(hidden, 7);
+        let mut p = net.params().to_vec();
+        jiggle(&mut p, 8, 0.3);
+        net.set_params(&p).unwrap();
+        let (u, y) = random_window(9);
+        let mut ws = net.workspace();
+        // loss L = ŷ²/2 so that dL/dŷ = ŷ
+        let out = net.predict(&mut ws, &u, &y);
+        let mut grad = vec![0.0; net.n_params()];
+        net.backward(&mut ws, out, Some(&mut grad), true);
+        let dx = ws.dx.clone();
+        let loss = |net: &SequenceNet, u: &[f64], y: &[f64]| {
+            let mut ws = net.workspace();
+            let o = net.predict(&mut ws, u, y);
+            0.5 * o * o
+        };
+        let eps = 1e-6;
+        let mut worst: f64 = 0.0;
+        for (k, &gk) in grad.iter().enumerate() {
+            let mut plus = net.clone();
+            plus.params_mut()[k] += eps;
+            let mut minus = net.clone();
+            minus.params_mut()[k] -= eps;
+            let fd = (loss(&plus, &u, &y) - loss(&minus, &u, &y)) / (2.0 * eps);
+            let err = (fd - gk).abs() / (fd.abs().max(gk.abs()).max(1e-3));
+            worst = worst.max(err);
+            assert!(err < 1e-5, "param {k}: fd {fd} vs {}", gk);
+        }
+        // Input gradients: ∂L/∂x = ŷ·∂ŷ/∂x.
+        for tau in 0..WINDOW {
+            for f in 0..FEATURES {
+                let (mut up, mut yp, mut um, mut ym) = (u.clone(), y.clone(), u.clone(), y.clone());
+                if f == 0 {
+                    up[tau] += eps;
+                    um[tau] -= eps;
+                } else {
+                    yp[tau] += eps;
+                    ym[tau] -= eps;
+                }
+                let fd = (loss(&net, &up, &yp) - loss(&net, &um, &ym)) / (2.0 * eps);
+                let a = dx[tau * FEATURES + f];
+                let err = (fd - a).abs() / fd.abs().max(a.abs()).max(1e-3);
+                assert!(err < 1e-5, "x[{tau}][{f}]: fd {fd} vs {a}");
+            }
+        }
+        // the gradient is not trivially small
+        assert!(grad.iter().map(|g| g.abs()).fold(0.0, f64::max) > 1e-3);
+        assert!(worst < 1e-5);
+    }
+
+    #[test]
+    fn one_layer_lstm_gradients_match_finite_differences() {
+        check_sequence_gradients(&[4]);
+    }
+
+    #[test]
+    fn two_layer_lstm_gradients_match_finite_differences() {
+        check_sequence_gradients(&[3, 5]);
+    }
+
+    #[test]
+    fn mlp_gradients_match_finite_differences() {
+        let mut mlp = Mlp::new(4, 3);
+        let mut p = mlp.params().to_vec();
+        jiggle(&mut p, 4, 0.3);
+        mlp.set_params(&p).unwrap();
+        let x = [0.3, 0.7, -0.2];
+        let mut ws = mlp.workspace();
+        let out = mlp.predict(&mut ws, x);
+        let mut grad = vec![0.0; mlp.n_params()];
+        mlp.backward(&mut ws, out, Some(&mut grad));
+        let loss = |m: &Mlp, x: [f64; 3]| {
+            let o = m.predict(&mut m.workspace(), x);
+            0.5 * o * o
+        };
+        let eps = 1e-6;
+        for (k, &gk) in grad.iter().enumerate() {
+            let mut plus = mlp.clone();
+            plus.params_mut()[k] += eps;
+            let mut minus = mlp.clone();
+            minus.params_mut()[k] -= eps;
+            let fd = (loss(&plus, x) - loss(&minus, x)) / (2.0 * eps);
+            let err = (fd - gk).abs() / fd.abs().max(gk.abs()).max(1e-3);
+            assert!(err < 1e-5, "param {k}: fd {fd} vs {}", gk);
+        }
+        for i in 0..3 {
+            let (mut xp, mut xm) = (x, x);
+            xp[i] += eps;
+            xm[i] -= eps;
+            let fd = (loss(&mlp, xp) - loss(&mlp, xm)) / (2.0 * eps);
+            let err = (fd - ws.dx[i]).abs() / fd.abs().max(1e-3);
+            assert!(err < 1e-5, "x[{i}]: fd {fd} vs {}", ws.dx[i]);
+        }
+    }
+
+    #[test]
+    fn forward_matches_a_hand_computed_one_unit_lstm() {
+        // 1 layer, hidden 1: set every weight by hand and recompute.
+        let mut net = SequenceNet::new(&[1], 0);
+        // layout: Wᵀ (2 rows × 4), Uᵀ (1 × 4), b (4), head w (1), head b (1)
+        let wt = [0.5, -0.3, 0.8, 0.1, 0.2, 0.4, -0.6, 0.7];
+        let ut = [0.3, -0.2, 0.5, 0.9];
+        let b = [0.1, 1.0, -0.1, 0.0];
+        let mut p = Vec::new();
+        p.extend_from_slice(&wt);
+        p.extend_from_slice(&ut);
+        p.extend_from_slice(&b);
+        p.extend_from_slice(&[1.5, -0.25]);
+        net.set_params(&p).unwrap();
+        let (u, y) = random_window(1);
+        let s = |x: f64| 1.0 / (1.0 + (-x).exp());
+        let (mut h, mut c) = (0.0, 0.0);
+        for t in 0..WINDOW {
+            let a = |g: usize| wt[g] * u[t] + wt[4 + g] * y[t] + ut[g] * h + b[g];
+            let (i, f, g, o) = (s(a(0)), s(a(1)), a(2).tanh(), s(a(3)));
+            c = f * c + i * g;
+            h = o * c.tanh();
+        }
+        let expected = 1.5 * h - 0.25;
+        let got = net.predict(&mut net.workspace(), &u, &y);
+        assert!((got - expected).abs() < 1e-14, "{got} vs {expected}");
+    }
+
+    #[test]
+    fn initialisation_is_seeded_and_sized() {
+        let a = SequenceNet::new(&[16, 8], 5);
+        // 4·16·(2+16+1) + 4·8·(16+8+1) + 9
+        assert_eq!(a.n_params(), 1216 + 800 + 9);
+        assert_eq!(a, SequenceNet::new(&[16, 8], 5));
+        assert_ne!(a.params(), SequenceNet::new(&[16, 8], 6).params());
+        // forget-gate biases start at 1, the others at 0
+        let b = &a.params()[4 * 16 * 18..4 * 16 * 19];
+        assert!(b[16..32].iter().all(|&v| v == 1.0));
+        assert!(b[..16].iter().chain(&b[32..]).all(|&v| v == 0.0));
+        assert_eq!(Mlp::new(8, 1).n_params(), 8 * 4 + 8 * 9 + 9);
+        let mut m = Mlp::new(8, 1);
+        assert_eq!(
+            m.set_params(&[0.0; 3]),
+            Err(ParamLengthError {
+                expected: 113,
+                found: 3
+            })
+        );
+    }
+}
