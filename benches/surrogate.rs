@@ -1,6 +1,12 @@
-//! Recursive prediction with the surrogates: 20-step rollout, and rollout with
-//! the 20×20 Jacobian, for the two-layer model (M1, M2: 1×32, M3: 2×32,
-//! M_A: 16) and the single LSTM (2×32). Random weights.
+//! Recursive prediction with the surrogates: a 20-step rollout, and a rollout
+//! with its 20×20 Jacobian, for the two-layer model (M1, M2: 1 layer of h,
+//! M3: 2 layers of h, M_A: 8) and the single LSTM (2 layers of h), for
+//! h = 8, 12, 16. Random weights (the cost does not depend on them).
+//!
+//! `rollout-20` and `rollout-20+jacobian` are what the controller pays per
+//! SQP iteration: the past window is the same across a solve, so its 19
+//! warm-up steps are kept. `rollout-20-cold` starts from a new past window
+//! every time (what the first call of a control step pays).
 
 use std::hint::black_box;
 
@@ -17,51 +23,71 @@ fn inputs() -> (Vec<f64>, Vec<f64>, Vec<f64>) {
 }
 
 fn rollout(c: &mut Criterion) {
-    let models = [
-        (
-            "two-layer",
-            Surrogate::TwoLayer(TwoLayerNet {
-                sub_models: [
-                    SequenceNet::new(&[32], 1),
-                    SequenceNet::new(&[32], 2),
-                    SequenceNet::new(&[32, 32], 3),
-                ],
-                combiner: Mlp::new(16, 4),
-            }),
-        ),
-        (
-            "single-lstm",
-            Surrogate::Single(SequenceNet::new(&[32, 32], 5)),
-        ),
-    ];
-    let (past_u, past_y, future_u) = inputs();
-    for (name, model) in models {
-        let mut p = Predictor::new(model, Scaling::default());
-        let mut out = vec![0.0; HORIZON];
-        let mut jac = vec![0.0; HORIZON * HORIZON];
-        c.bench_function(&format!("{name}/rollout-20"), |b| {
-            b.iter(|| {
-                p.predict(&past_u, &past_y, black_box(&future_u), 0.0, &mut out)
+    for h in [8, 12, 16] {
+        let models = [
+            (
+                "two-layer",
+                Surrogate::TwoLayer(TwoLayerNet {
+                    sub_models: [
+                        SequenceNet::new(&[h], 1),
+                        SequenceNet::new(&[h], 2),
+                        SequenceNet::new(&[h, h], 3),
+                    ],
+                    combiner: Mlp::new(8, 4),
+                }),
+            ),
+            (
+                "single-lstm",
+                Surrogate::Single(SequenceNet::new(&[h, h], 5)),
+            ),
+        ];
+        let (past_u, past_y, future_u) = inputs();
+        let mut other_y = past_y.clone();
+        other_y[0] += 0.01;
+        for (name, model) in models {
+            let mut p = Predictor::new(model, Scaling::default());
+            let mut out = vec![0.0; HORIZON];
+            let mut jac = vec![0.0; HORIZON * HORIZON];
+            c.bench_function(&format!("{name}-h{h}/rollout-20"), |b| {
+                b.iter(|| {
+                    p.predict(&past_u, &past_y, black_box(&future_u), 0.0, &mut out)
+                        .unwrap();
+                    black_box(out[HORIZON - 1])
+                })
+            });
+            let mut flip = false;
+            c.bench_function(&format!("{name}-h{h}/rollout-20-cold"), |b| {
+                b.iter(|| {
+                    flip = !flip;
+                    let py = if flip { &past_y } else { &other_y };
+                    p.predict(&past_u, py, black_box(&future_u), 0.0, &mut out)
+                        .unwrap();
+                    black_box(out[HORIZON - 1])
+                })
+            });
+            c.bench_function(&format!("{name}-h{h}/rollout-20+jacobian"), |b| {
+                b.iter(|| {
+                    p.predict_with_jacobian(
+                        &past_u,
+                        &past_y,
+                        black_box(&future_u),
+                        0.0,
+                        &mut out,
+                        &mut jac,
+                    )
                     .unwrap();
-                black_box(out[HORIZON - 1])
-            })
-        });
-        c.bench_function(&format!("{name}/rollout-20+jacobian"), |b| {
-            b.iter(|| {
-                p.predict_with_jacobian(
-                    &past_u,
-                    &past_y,
-                    black_box(&future_u),
-                    0.0,
-                    &mut out,
-                    &mut jac,
-                )
-                .unwrap();
-                black_box(jac[HORIZON * HORIZON - 1])
-            })
-        });
+                    black_box(jac[HORIZON * HORIZON - 1])
+                })
+            });
+        }
     }
 }
 
-criterion_group!(benches, rollout);
+criterion_group! {
+    name = benches;
+    config = Criterion::default()
+        .warm_up_time(std::time::Duration::from_millis(500))
+        .measurement_time(std::time::Duration::from_secs(2));
+    targets = rollout
+}
 criterion_main!(benches);

@@ -17,7 +17,7 @@ pub fn recursive_nrmse(
     series: &Series,
     horizons: &[usize],
     stride: usize,
-    predict: impl Fn(&[f64], &[f64], &[f64]) -> Vec<f64>,
+    mut predict: impl FnMut(&[f64], &[f64], &[f64]) -> Vec<f64>,
 ) -> Vec<f64> {
     let longest = horizons.iter().copied().max().unwrap_or(1);
     let y = &series.water_content;

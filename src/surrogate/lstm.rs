@@ -46,6 +46,18 @@ pub(crate) struct LstmTape {
     dh: Vec<f64>,
 }
 
+impl LstmTape {
+    /// Grows the tape to hold at least `steps` steps (never shrinks).
+    pub fn ensure(&mut self, steps: usize, hidden: usize) {
+        if self.h.len() < steps * hidden {
+            self.gates.resize(steps * 4 * hidden, 0.0);
+            self.c.resize(steps * hidden, 0.0);
+            self.tanh_c.resize(steps * hidden, 0.0);
+            self.h.resize(steps * hidden, 0.0);
+        }
+    }
+}
+
 impl Lstm {
     pub fn n_params(&self) -> usize {
         4 * self.hidden * (self.n_in + self.hidden + 1)
@@ -89,33 +101,35 @@ impl Lstm {
         (w, u, b)
     }
 
-    /// Forward pass over `x` (steps × n_in, row per step) from rest; fills the tape.
-    ///
     /// On x86-64 CPUs with AVX2 the same code is run compiled for AVX2 (no FMA
     /// contraction: the results are bitwise those of the baseline build).
-    pub fn forward(&self, p: &[f64], x: &[f64], tape: &mut LstmTape) {
+    ///
+    /// Steps `from..to` of the forward pass, `x` holding the inputs of every
+    /// step from 0 (row per step); the tape must hold steps `0..from` already.
+    /// This is how a sequence is continued one step at a time.
+    pub fn forward_range(&self, p: &[f64], x: &[f64], tape: &mut LstmTape, from: usize, to: usize) {
+        tape.ensure(to, self.hidden);
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: AVX2 is available on this CPU (checked just above).
-            unsafe { self.forward_avx2(p, x, tape) };
+            unsafe { self.forward_avx2(p, x, tape, from, to) };
             return;
         }
-        self.forward_impl(p, x, tape);
+        self.forward_impl(p, x, tape, from, to);
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    fn forward_avx2(&self, p: &[f64], x: &[f64], tape: &mut LstmTape) {
-        self.forward_impl(p, x, tape);
+    fn forward_avx2(&self, p: &[f64], x: &[f64], tape: &mut LstmTape, from: usize, to: usize) {
+        self.forward_impl(p, x, tape, from, to);
     }
 
     #[inline(always)]
-    fn forward_impl(&self, p: &[f64], x: &[f64], tape: &mut LstmTape) {
+    fn forward_impl(&self, p: &[f64], x: &[f64], tape: &mut LstmTape, from: usize, to: usize) {
         let h = self.hidden;
         let g = 4 * h;
         let (wt, ut, b) = self.split(p);
-        let steps = x.len() / self.n_in;
-        for t in 0..steps {
+        for t in from..to {
             let xt = &x[t * self.n_in..(t + 1) * self.n_in];
             let (h_done, h_rest) = tape.h.split_at_mut(t * h);
             let h_prev = if t > 0 {
@@ -152,6 +166,104 @@ impl Lstm {
             for k in 0..h {
                 tc[k] = tanh(c_now[k]);
                 h_now[k] = ao[k] * tc[k];
+            }
+        }
+    }
+
+    /// Forward-mode derivatives through step `t` (after the forward pass
+    /// reached `t`), for `dirs` directions at once, direction-major:
+    ///
+    /// * `dx`: the input tangents ∂xₜ (dirs × n_in);
+    /// * `dh`, `dc`: on entry ∂hₜ₋₁, ∂cₜ₋₁, on exit ∂hₜ, ∂cₜ (dirs × h);
+    /// * `da`: scratch of 4h.
+    ///
+    /// ```text
+    /// ∂a = W·∂x + U·∂hₜ₋₁
+    /// ∂i = i(1−i)∂a_i, ∂f = f(1−f)∂a_f, ∂g = (1−g²)∂a_g, ∂o = o(1−o)∂a_o
+    /// ∂c = ∂f·cₜ₋₁ + f·∂cₜ₋₁ + ∂i·g + i·∂g
+    /// ∂h = ∂o·tanh(c) + o·(1 − tanh²c)·∂c
+    /// ```
+    #[allow(clippy::too_many_arguments)]
+    pub fn tangent_step(
+        &self,
+        p: &[f64],
+        tape: &LstmTape,
+        t: usize,
+        dirs: usize,
+        dx: &[f64],
+        dh: &mut [f64],
+        dc: &mut [f64],
+        da: &mut [f64],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is available on this CPU (checked just above).
+            unsafe { self.tangent_avx2(p, tape, t, dirs, dx, dh, dc, da) };
+            return;
+        }
+        self.tangent_impl(p, tape, t, dirs, dx, dh, dc, da);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    fn tangent_avx2(
+        &self,
+        p: &[f64],
+        tape: &LstmTape,
+        t: usize,
+        dirs: usize,
+        dx: &[f64],
+        dh: &mut [f64],
+        dc: &mut [f64],
+        da: &mut [f64],
+    ) {
+        self.tangent_impl(p, tape, t, dirs, dx, dh, dc, da);
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn tangent_impl(
+        &self,
+        p: &[f64],
+        tape: &LstmTape,
+        t: usize,
+        dirs: usize,
+        dx: &[f64],
+        dh: &mut [f64],
+        dc: &mut [f64],
+        da: &mut [f64],
+    ) {
+        let h = self.hidden;
+        let g = 4 * h;
+        let (wt, ut, _) = self.split(p);
+        let gt = &tape.gates[t * g..(t + 1) * g];
+        let tc = &tape.tanh_c[t * h..(t + 1) * h];
+        let (i, rest) = gt.split_at(h);
+        let (f, rest) = rest.split_at(h);
+        let (gg, o) = rest.split_at(h);
+        let zeros = [0.0; 0];
+        let c_prev = if t > 0 {
+            &tape.c[(t - 1) * h..t * h]
+        } else {
+            &zeros[..]
+        };
+        for d in 0..dirs {
+            let da = &mut da[..g];
+            da.fill(0.0);
+            add_matvec_cols(da, wt, &dx[d * self.n_in..(d + 1) * self.n_in]);
+            let dhd = &mut dh[d * h..(d + 1) * h];
+            let dcd = &mut dc[d * h..(d + 1) * h];
+            add_matvec_cols(da, ut, dhd);
+            for k in 0..h {
+                let di = i[k] * (1.0 - i[k]) * da[k];
+                let df = f[k] * (1.0 - f[k]) * da[h + k];
+                let dg = (1.0 - gg[k] * gg[k]) * da[2 * h + k];
+                let dov = o[k] * (1.0 - o[k]) * da[3 * h + k];
+                let cp = if t > 0 { c_prev[k] } else { 0.0 };
+                let c_new = df * cp + f[k] * dcd[k] + di * gg[k] + i[k] * dg;
+                dcd[k] = c_new;
+                dhd[k] = dov * tc[k] + o[k] * (1.0 - tc[k] * tc[k]) * c_new;
             }
         }
     }

@@ -8,7 +8,7 @@
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::dense::{Dense, sigmoid};
+use super::dense::{Dense, dot, sigmoid};
 use super::evaluate::WINDOW;
 use super::lstm::{Lstm, LstmTape};
 
@@ -59,8 +59,15 @@ fn set_checked(dst: &mut [f64], src: &[f64]) -> Result<(), ParamLengthError> {
     Ok(())
 }
 
-/// Stacked LSTM (1 or 2 layers) over a window of [`WINDOW`] steps of
-/// (ū, ȳ), then a dense head from the last hidden state to one output ȳ_next.
+/// Stacked LSTM (1 or 2 layers) over a sequence of (ū[j], ȳ[j − 1]) pairs
+/// with a dense head from the top hidden state to ȳ[j] at every step.
+///
+/// The recurrence starts from rest [`WINDOW`] − 1 steps before the first
+/// prediction: the 20-sample window of MODEL.md §3 warms the state up, its
+/// last pair gives the first prediction, and later predictions continue the
+/// same recurrence one step at a time, each fed the previous prediction (see
+/// [`super::rollout`]). A one-step prediction is therefore exactly a 20-step
+/// window model; multi-step predictions cost one LSTM step each.
 ///
 /// Parameters: layer 1, (layer 2), head (see [`super::lstm`] and
 /// [`super::dense`] for the layouts).
@@ -71,16 +78,37 @@ pub struct SequenceNet {
     params: Vec<f64>,
 }
 
-/// Forward/backward workspace of a [`SequenceNet`].
+/// Forward/backward/tangent workspace of a [`SequenceNet`]; grows to the
+/// longest sequence seen.
 #[derive(Debug, Clone)]
 pub struct SequenceWorkspace {
     tapes: Vec<LstmTape>,
     /// ∂L/∂h of every step, one buffer per layer.
     dh: Vec<Vec<f64>>,
-    /// The window, (ū, ȳ) per step.
+    /// The inputs, (ū, ȳ) per step.
     pub(crate) x: Vec<f64>,
-    /// ∂ŷ/∂x of the window, filled by [`SequenceNet::input_gradient`].
+    /// ∂L/∂x of the sequence, filled by the backward pass when asked.
     pub(crate) dx: Vec<f64>,
+    /// Per-step output gradients for the backward pass.
+    pub(crate) dout: Vec<f64>,
+    /// Forward-mode tangents per layer: ∂h and ∂c, direction-major.
+    th: Vec<Vec<f64>>,
+    tc: Vec<Vec<f64>>,
+    /// Tangent scratch (4h of the widest layer).
+    ta: Vec<f64>,
+    /// Output tangents ∂ŷ per direction after [`SequenceNet::tangent_step`].
+    pub(crate) tz: Vec<f64>,
+}
+
+impl SequenceWorkspace {
+    /// Makes room for sequences of `steps` steps.
+    pub(crate) fn ensure_steps(&mut self, steps: usize) {
+        if self.x.len() < steps * FEATURES {
+            self.x.resize(steps * FEATURES, 0.0);
+            self.dx.resize(steps * FEATURES, 0.0);
+            self.dout.resize(steps, 0.0);
+        }
+    }
 }
 
 impl SequenceNet {
@@ -138,28 +166,45 @@ impl SequenceNet {
         &mut self.params
     }
 
+    /// A workspace for sequences of a window and a 20-step horizon (it grows
+    /// when longer sequences are run).
     pub fn workspace(&self) -> SequenceWorkspace {
+        let steps = WINDOW - 1 + super::rollout::HORIZON;
+        let widest = self.layers.iter().map(|l| l.hidden).max().unwrap_or(1);
         SequenceWorkspace {
-            tapes: self.layers.iter().map(|l| l.tape(WINDOW)).collect(),
-            dh: self
-                .layers
-                .iter()
-                .map(|l| vec![0.0; WINDOW * l.hidden])
-                .collect(),
-            x: vec![0.0; WINDOW * FEATURES],
-            dx: vec![0.0; WINDOW * FEATURES],
+            tapes: self.layers.iter().map(|l| l.tape(steps)).collect(),
+            dh: self.layers.iter().map(|_| Vec::new()).collect(),
+            x: vec![0.0; steps * FEATURES],
+            dx: vec![0.0; steps * FEATURES],
+            dout: vec![0.0; steps],
+            th: self.layers.iter().map(|_| Vec::new()).collect(),
+            tc: self.layers.iter().map(|_| Vec::new()).collect(),
+            ta: vec![0.0; 4 * widest],
+            tz: Vec::new(),
         }
+    }
+
+    fn head_offset(&self) -> usize {
+        self.params.len() - self.head.n_params()
     }
 
     /// ȳ_next from a window of scaled inputs `u` and outputs `y` (each
     /// [`WINDOW`] long, oldest first; step τ of the window is (u[τ], y[τ])).
     pub fn predict(&self, ws: &mut SequenceWorkspace, u: &[f64], y: &[f64]) -> f64 {
+        ws.ensure_steps(WINDOW);
         fill_window(&mut ws.x, u, y);
         self.forward(ws)
     }
 
-    /// Forward pass on the window already in `ws.x`.
+    /// Forward pass on the window already in `ws.x` (its first [`WINDOW`] steps).
     pub(crate) fn forward(&self, ws: &mut SequenceWorkspace) -> f64 {
+        self.advance(ws, 0, WINDOW);
+        self.output(ws, WINDOW - 1)
+    }
+
+    /// Runs steps `from..to` of every layer on the inputs in `ws.x`; steps
+    /// `0..from` must have been run before.
+    pub(crate) fn advance(&self, ws: &mut SequenceWorkspace, from: usize, to: usize) {
         let mut offset = 0;
         for (l, layer) in self.layers.iter().enumerate() {
             let p = &self.params[offset..offset + layer.n_params()];
@@ -170,14 +215,18 @@ impl SequenceNet {
             } else {
                 &below[l - 1].h[..]
             };
-            layer.forward(p, x, &mut here[0]);
+            layer.forward_range(p, x, &mut here[0], from, to);
         }
-        let last = &ws.tapes[self.layers.len() - 1];
+    }
+
+    /// The head's output ȳ at step `t` (after [`advance`](Self::advance) past it).
+    pub(crate) fn output(&self, ws: &SequenceWorkspace, t: usize) -> f64 {
+        let top = &ws.tapes[self.layers.len() - 1];
         let h = self.head.n_in;
         let mut out = [0.0];
         self.head.forward(
-            &self.params[offset..],
-            &last.h[(WINDOW - 1) * h..],
+            &self.params[self.head_offset()..],
+            &top.h[t * h..(t + 1) * h],
             &mut out,
         );
         out[0]
@@ -186,29 +235,58 @@ impl SequenceNet {
     /// Backward pass after [`forward`](Self::forward) for the output gradient
     /// `dout` = ∂L/∂ŷ: adds ∂L/∂θ to `grad` when given, and writes ∂L/∂x of
     /// the window into `ws.dx` when `want_dx`.
+    #[cfg(test)]
     pub(crate) fn backward(
         &self,
         ws: &mut SequenceWorkspace,
         dout: f64,
+        grad: Option<&mut [f64]>,
+        want_dx: bool,
+    ) {
+        ws.dout[..WINDOW].fill(0.0);
+        ws.dout[WINDOW - 1] = dout;
+        self.backward_sequence(ws, WINDOW, grad, want_dx);
+    }
+
+    /// Backpropagation through the first `steps` steps, with the output
+    /// gradients ∂L/∂ŷₜ in `ws.dout[..steps]` (zero where a step's output is
+    /// not used). The inputs in `ws.x` are taken as given (outputs fed back as
+    /// inputs are not differentiated through). Adds ∂L/∂θ to `grad` when
+    /// given; writes ∂L/∂x into `ws.dx` when `want_dx`.
+    pub(crate) fn backward_sequence(
+        &self,
+        ws: &mut SequenceWorkspace,
+        steps: usize,
         mut grad: Option<&mut [f64]>,
         want_dx: bool,
     ) {
         let n_layers = self.layers.len();
-        let head_offset = self.params.len() - self.head.n_params();
-        // The head sees only the last hidden state.
+        let head_offset = self.head_offset();
         let top = n_layers - 1;
         let h_top = self.head.n_in;
+        for (dh, layer) in ws.dh.iter_mut().zip(&self.layers) {
+            if dh.len() < steps * layer.hidden {
+                dh.resize(steps * layer.hidden, 0.0);
+            }
+        }
         {
-            let dh = &mut ws.dh[top];
-            dh.fill(0.0);
-            let last_h = &ws.tapes[top].h[(WINDOW - 1) * h_top..];
-            self.head.backward(
-                &self.params[head_offset..],
-                last_h,
-                &[dout],
-                grad.as_deref_mut().map(|g| &mut g[head_offset..]),
-                Some(&mut dh[(WINDOW - 1) * h_top..]),
-            );
+            let dh = &mut ws.dh[top][..steps * h_top];
+            let hs = &ws.tapes[top].h;
+            for t in 0..steps {
+                let d = ws.dout[t];
+                let dht = &mut dh[t * h_top..(t + 1) * h_top];
+                if d == 0.0 {
+                    dht.fill(0.0);
+                    continue;
+                }
+                self.head.backward(
+                    &self.params[head_offset..],
+                    &hs[t * h_top..(t + 1) * h_top],
+                    &[d],
+                    grad.as_deref_mut().map(|g| &mut g[head_offset..]),
+                    Some(dht),
+                );
+            }
         }
         let mut offset = head_offset;
         for l in (0..n_layers).rev() {
@@ -220,26 +298,81 @@ impl SequenceNet {
                 .map(|g| &mut g[offset..offset + layer.n_params()]);
             let (below, here) = ws.tapes.split_at_mut(l);
             let (dh_below, dh_here) = ws.dh.split_at_mut(l);
+            let dh_out = &dh_here[0][..steps * layer.hidden];
             if l == 0 {
-                let dx = if want_dx { Some(&mut ws.dx[..]) } else { None };
-                layer.backward(p, &ws.x, &dh_here[0], &mut here[0], g, dx);
+                let dx = if want_dx {
+                    Some(&mut ws.dx[..steps * FEATURES])
+                } else {
+                    None
+                };
+                layer.backward(p, &ws.x[..steps * FEATURES], dh_out, &mut here[0], g, dx);
             } else {
+                let n_in = layer.n_in;
                 layer.backward(
                     p,
-                    &below[l - 1].h,
-                    &dh_here[0],
+                    &below[l - 1].h[..steps * n_in],
+                    dh_out,
                     &mut here[0],
                     g,
-                    Some(&mut dh_below[l - 1][..]),
+                    Some(&mut dh_below[l - 1][..steps * n_in]),
                 );
             }
         }
     }
 
-    /// ∂ŷ/∂x of the window last passed forward, into `ws.dx` (step τ's
-    /// (∂ŷ/∂ū, ∂ŷ/∂ȳ) at 2τ, 2τ + 1).
-    pub(crate) fn input_gradient(&self, ws: &mut SequenceWorkspace) {
-        self.backward(ws, 1.0, None, true);
+    /// Clears the forward-mode tangents for up to `dirs` directions.
+    pub(crate) fn reset_tangents(&self, ws: &mut SequenceWorkspace, dirs: usize) {
+        for ((th, tc), layer) in ws.th.iter_mut().zip(&mut ws.tc).zip(&self.layers) {
+            th.clear();
+            th.resize(dirs * layer.hidden, 0.0);
+            tc.clear();
+            tc.resize(dirs * layer.hidden, 0.0);
+        }
+        ws.tz.clear();
+        ws.tz.resize(dirs, 0.0);
+    }
+
+    /// Propagates the tangents of `dirs` directions through step `t` (after
+    /// [`advance`](Self::advance) past it): `dx` holds the input tangents
+    /// (dirs × 2, direction-major); the state tangents of step t − 1 are those
+    /// left in the workspace by the previous call (zero after
+    /// [`reset_tangents`](Self::reset_tangents)). Writes ∂ŷₜ per direction
+    /// into `ws.tz[..dirs]`.
+    pub(crate) fn tangent_step(
+        &self,
+        ws: &mut SequenceWorkspace,
+        t: usize,
+        dirs: usize,
+        dx: &[f64],
+    ) {
+        let mut offset = 0;
+        for (l, layer) in self.layers.iter().enumerate() {
+            let p = &self.params[offset..offset + layer.n_params()];
+            offset += layer.n_params();
+            let h = layer.hidden;
+            let (th_below, th_here) = ws.th.split_at_mut(l);
+            let input = if l == 0 {
+                &dx[..dirs * FEATURES]
+            } else {
+                &th_below[l - 1][..dirs * layer.n_in]
+            };
+            layer.tangent_step(
+                p,
+                &ws.tapes[l],
+                t,
+                dirs,
+                input,
+                &mut th_here[0][..dirs * h],
+                &mut ws.tc[l][..dirs * h],
+                &mut ws.ta,
+            );
+        }
+        let h = self.head.n_in;
+        let w = &self.params[self.head_offset()..self.head_offset() + h];
+        let top = &ws.th[self.layers.len() - 1];
+        for (z, dh) in ws.tz[..dirs].iter_mut().zip(top.chunks_exact(h)) {
+            *z = dot(w, dh);
+        }
     }
 }
 
@@ -413,15 +546,6 @@ pub enum Surrogate {
     TwoLayer(TwoLayerNet),
 }
 
-/// Workspace of a [`Surrogate`] for one window: prediction and ∂ŷ/∂window.
-#[derive(Debug, Clone)]
-pub(crate) struct SurrogateWorkspace {
-    subs: Vec<SequenceWorkspace>,
-    combiner: Option<MlpWorkspace>,
-    /// ∂ŷ/∂x of the window, (ū, ȳ) interleaved.
-    pub dx: Vec<f64>,
-}
-
 impl Surrogate {
     pub fn n_params(&self) -> usize {
         match self {
@@ -470,65 +594,6 @@ impl Surrogate {
                     offset += n;
                 }
                 m.combiner.set_params(&params[offset..])
-            }
-        }
-    }
-
-    pub(crate) fn workspace(&self) -> SurrogateWorkspace {
-        let (subs, combiner) = match self {
-            Surrogate::Single(net) => (vec![net.workspace()], None),
-            Surrogate::TwoLayer(m) => (
-                m.sub_models.iter().map(SequenceNet::workspace).collect(),
-                Some(m.combiner.workspace()),
-            ),
-        };
-        SurrogateWorkspace {
-            subs,
-            combiner,
-            dx: vec![0.0; WINDOW * FEATURES],
-        }
-    }
-
-    /// ȳ_next for the window `x` ((ū, ȳ) interleaved, [`WINDOW`] steps).
-    pub(crate) fn forward(&self, ws: &mut SurrogateWorkspace, x: &[f64]) -> f64 {
-        match self {
-            Surrogate::Single(net) => {
-                let s = &mut ws.subs[0];
-                s.x.copy_from_slice(x);
-                net.forward(s)
-            }
-            Surrogate::TwoLayer(m) => {
-                let Some(c) = ws.combiner.as_mut() else {
-                    unreachable!("two-layer workspace has a combiner")
-                };
-                for ((net, s), xi) in m.sub_models.iter().zip(&mut ws.subs).zip(&mut c.x) {
-                    s.x.copy_from_slice(x);
-                    *xi = net.forward(s);
-                }
-                m.combiner.forward(c)
-            }
-        }
-    }
-
-    /// ∂ŷ/∂x of the window last passed to [`forward`](Self::forward), into `ws.dx`.
-    pub(crate) fn input_gradient(&self, ws: &mut SurrogateWorkspace) {
-        match self {
-            Surrogate::Single(net) => {
-                net.input_gradient(&mut ws.subs[0]);
-                ws.dx.copy_from_slice(&ws.subs[0].dx);
-            }
-            Surrogate::TwoLayer(m) => {
-                let Some(c) = ws.combiner.as_mut() else {
-                    unreachable!("two-layer workspace has a combiner")
-                };
-                m.combiner.backward(c, 1.0, None);
-                ws.dx.fill(0.0);
-                for ((net, s), &dz) in m.sub_models.iter().zip(&mut ws.subs).zip(&c.dx) {
-                    net.backward(s, dz, None, true);
-                    for (d, v) in ws.dx.iter_mut().zip(&s.dx) {
-                        *d += v;
-                    }
-                }
             }
         }
     }
@@ -614,6 +679,57 @@ pub(crate) mod tests {
     #[test]
     fn two_layer_lstm_gradients_match_finite_differences() {
         check_sequence_gradients(&[3, 5]);
+    }
+
+    /// Outputs at several steps of a longer sequence (fixed inputs): the
+    /// gradient of L = Σₜ wₜ·ŷₜ²/2 against finite differences.
+    #[test]
+    fn sequence_gradients_with_outputs_at_many_steps_match_finite_differences() {
+        let steps = WINDOW + 6;
+        let mut net = SequenceNet::new(&[3, 4], 17);
+        let mut p = net.params().to_vec();
+        jiggle(&mut p, 18, 0.3);
+        net.set_params(&p).unwrap();
+        let mut draw = uniform_draw(19);
+        let x: Vec<f64> = (0..steps * FEATURES).map(|_| draw()).collect();
+        let weights: Vec<f64> = (0..steps)
+            .map(|t| {
+                if t >= WINDOW - 1 {
+                    1.0 + t as f64 / 10.0
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let loss_and_dout = |net: &SequenceNet, ws: &mut SequenceWorkspace| {
+            ws.ensure_steps(steps);
+            ws.x[..steps * FEATURES].copy_from_slice(&x);
+            net.advance(ws, 0, steps);
+            let mut loss = 0.0;
+            for (t, &w) in weights.iter().enumerate() {
+                let o = net.output(ws, t);
+                loss += 0.5 * w * o * o;
+                ws.dout[t] = w * o;
+            }
+            loss
+        };
+        let mut ws = net.workspace();
+        loss_and_dout(&net, &mut ws);
+        let mut grad = vec![0.0; net.n_params()];
+        net.backward_sequence(&mut ws, steps, Some(&mut grad), true);
+        let eps = 1e-6;
+        for (k, &gk) in grad.iter().enumerate() {
+            let mut plus = net.clone();
+            plus.params_mut()[k] += eps;
+            let mut minus = net.clone();
+            minus.params_mut()[k] -= eps;
+            let fd = (loss_and_dout(&plus, &mut plus.workspace())
+                - loss_and_dout(&minus, &mut minus.workspace()))
+                / (2.0 * eps);
+            let err = (fd - gk).abs() / (fd.abs().max(gk.abs()).max(1e-3));
+            assert!(err < 1e-5, "param {k}: fd {fd} vs {gk}");
+        }
+        assert!(grad.iter().map(|g| g.abs()).fold(0.0, f64::max) > 1e-3);
     }
 
     #[test]

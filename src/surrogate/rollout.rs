@@ -14,34 +14,34 @@
 //! * the result `ŷ[k]` predicts y[t + k], the water content at the end of the
 //!   step over which `future_u[k]` is applied.
 //!
-//! The network predicting y[s] sees the window (ū[s − 19..=s], ȳ[s − 20..s]):
-//! window step τ = 0..20 is the pair (ū[s − 19 + τ], ȳ[s − 20 + τ]), i.e. the
-//! input applied over the step being predicted is the last input of the
-//! window. For ŷ[0] this is (`past_u[1..20]` ++ [`future_u[0]`], `past_y[0..20]`).
-//! Outputs y[s] with s ≥ t are the model's own (unbiased) predictions fed back.
+//! The prediction continues one recurrence (see [`SequenceNet`]): the LSTM
+//! state is warmed up from rest on the pairs (ū[t − 19 + τ], ȳ[t − 20 + τ]),
+//! τ = 0..19, i.e. (`past_u[1..20]`, `past_y[0..19]`); ŷ[0] comes from the
+//! pair (`future_u[0]`, `past_y[19]`), so that it sees exactly the 20-sample
+//! window (`past_u[1..20]` ++ [`future_u[0]`], `past_y`); ŷ[k] comes from one
+//! more step on (`future_u[k]`, ŷ[k − 1]), the model's own (unbiased)
+//! prediction fed back. A rollout over N steps therefore costs 19 + N LSTM
+//! steps, and the 19 warm-up steps are kept and reused while the past window
+//! stays the same (as it does across the iterations of one MPC solve).
 //!
 //! # Output correction
 //!
 //! The additive correction `bias` is applied to the returned outputs only:
-//! ŷ[k] = y(ȳ_k) + bias, while the windows are fed back the uncorrected
+//! ŷ[k] = y(ȳ_k) + bias, while the recurrence is fed the uncorrected
 //! predictions. The Jacobian is therefore independent of `bias`.
 //!
 //! # Jacobian
 //!
-//! After the forward pass each window's local gradient g = ∂ȳ_k/∂(window) is
-//! computed by one backward pass (inputs only). With D[k][j] = dȳ_k/dū_j
-//! the chain rule through the fed-back outputs is
-//!
-//! ```text
-//! D[k][j] = g_u[k][τ = j − k + 19] + Σ_{m<k} g_y[k][τ = m − k + 20] · D[m][j]
-//! ```
-//!
-//! (terms whose τ falls outside 0..20 vanish), and in raw units
-//! dŷ_k/du_j = (y_max − y_min) · D[k][j] · dū/du(u_j). The matrix is lower
-//! triangular: ŷ_k does not depend on rates applied after step k.
+//! Forward mode: direction j (the input ū_j) enters at step j, so at step k
+//! the tangents of the directions 0..=k are carried through every LSTM layer
+//! (∂h, ∂c), the heads, the combiner (∂ŷ = Σᵢ ∂M_A/∂zᵢ·∂zᵢ) and back into the
+//! next step's input ȳ. That is Σ_k (k + 1) = N(N + 1)/2 tangent steps per
+//! layer. In raw units dŷ_k/du_j = (y_max − y_min)·∂ȳ_k/∂ū_j·dū/du(u_j). The
+//! matrix is lower triangular: ŷ_k does not depend on rates applied after
+//! step k.
 
 use super::evaluate::WINDOW;
-use super::network::{FEATURES, Surrogate, SurrogateWorkspace};
+use super::network::{FEATURES, MlpWorkspace, SequenceNet, SequenceWorkspace, Surrogate};
 use super::scaling::Scaling;
 
 /// Default prediction horizon N.
@@ -66,31 +66,43 @@ pub enum RolloutError {
 pub struct Predictor {
     model: Surrogate,
     scaling: Scaling,
-    ws: SurrogateWorkspace,
-    /// Scaled inputs: 20 past then N future.
-    u: Vec<f64>,
-    /// Scaled outputs: 20 past then N predicted.
+    subs: Vec<SequenceWorkspace>,
+    combiner: Option<MlpWorkspace>,
+    /// The raw past window the warmed-up state belongs to.
+    warm_u: Vec<f64>,
+    warm_y: Vec<f64>,
+    warm: bool,
+    /// Scaled (unbiased) predictions.
     y: Vec<f64>,
-    /// The current window.
-    x: Vec<f64>,
-    /// Local window gradients, N × (2·WINDOW).
-    local: Vec<f64>,
     /// dȳ_k/dū_j, N × N.
     d: Vec<f64>,
+    /// Input tangents of the current step, N × 2.
+    dx: Vec<f64>,
+    /// Output tangents of the previous step, N.
+    dy: Vec<f64>,
 }
 
 impl Predictor {
     pub fn new(model: Surrogate, scaling: Scaling) -> Predictor {
-        let ws = model.workspace();
+        let (subs, combiner) = match &model {
+            Surrogate::Single(net) => (vec![net.workspace()], None),
+            Surrogate::TwoLayer(m) => (
+                m.sub_models.iter().map(SequenceNet::workspace).collect(),
+                Some(m.combiner.workspace()),
+            ),
+        };
         Predictor {
             model,
             scaling,
-            ws,
-            u: Vec::new(),
+            subs,
+            combiner,
+            warm_u: Vec::with_capacity(WINDOW),
+            warm_y: Vec::with_capacity(WINDOW),
+            warm: false,
             y: Vec::new(),
-            x: vec![0.0; WINDOW * FEATURES],
-            local: Vec::new(),
             d: Vec::new(),
+            dx: Vec::new(),
+            dy: Vec::new(),
         }
     }
 
@@ -124,33 +136,99 @@ impl Predictor {
         expect("out", future_u.len(), out.len())
     }
 
-    /// Forward rollout in scaled units: fills `self.y[WINDOW..]` and, when
-    /// `local` is set, the local window gradients.
-    fn run(&mut self, past_u: &[f64], past_y: &[f64], future_u: &[f64], local: bool) {
+    /// The rollout in scaled units into `self.y` and, when `jacobian`, the
+    /// scaled sensitivities into `self.d`.
+    fn run(&mut self, past_u: &[f64], past_y: &[f64], future_u: &[f64], jacobian: bool) {
         let n = future_u.len();
         let (si, so) = (self.scaling.input, self.scaling.output);
-        self.u.clear();
-        self.u
-            .extend(past_u.iter().chain(future_u).map(|&v| si.scale(v)));
-        self.y.clear();
-        self.y.extend(past_y.iter().map(|&v| so.scale(v)));
-        self.y.resize(WINDOW + n, 0.0);
-        if local {
-            self.local.resize(n * WINDOW * FEATURES, 0.0);
+        let Predictor {
+            model,
+            subs,
+            combiner,
+            warm_u,
+            warm_y,
+            warm,
+            y,
+            d,
+            dx,
+            dy,
+            ..
+        } = self;
+        let (nets, mlp): (&[SequenceNet], _) = match &*model {
+            Surrogate::Single(net) => (std::slice::from_ref(net), None),
+            Surrogate::TwoLayer(m) => (&m.sub_models[..], Some(&m.combiner)),
+        };
+        let cached = *warm && warm_u.as_slice() == past_u && warm_y.as_slice() == past_y;
+        for (net, ws) in nets.iter().zip(subs.iter_mut()) {
+            ws.ensure_steps(WINDOW - 1 + n);
+            if !cached {
+                for tau in 0..WINDOW - 1 {
+                    ws.x[tau * FEATURES] = si.scale(past_u[tau + 1]);
+                    ws.x[tau * FEATURES + 1] = so.scale(past_y[tau]);
+                }
+                net.advance(ws, 0, WINDOW - 1);
+            }
+            if jacobian {
+                net.reset_tangents(ws, n);
+            }
         }
+        if !cached {
+            warm_u.clear();
+            warm_u.extend_from_slice(past_u);
+            warm_y.clear();
+            warm_y.extend_from_slice(past_y);
+            *warm = true;
+        }
+        y.clear();
+        y.resize(n, 0.0);
+        if jacobian {
+            d.clear();
+            d.resize(n * n, 0.0);
+            dx.clear();
+            dx.resize(n * FEATURES, 0.0);
+            dy.clear();
+            dy.resize(n, 0.0);
+        }
+        let mut prev = so.scale(past_y[WINDOW - 1]);
         for k in 0..n {
-            // window for y[t + k]: ū[k + 1 ..= k + 20], ȳ[k .. k + 20] (array positions)
-            for (tau, pair) in self.x.chunks_exact_mut(FEATURES).enumerate() {
-                pair[0] = self.u[k + 1 + tau];
-                pair[1] = self.y[k + tau];
+            let t = WINDOW - 1 + k;
+            let uk = si.scale(future_u[k]);
+            let mut z = [0.0; 3];
+            for ((net, ws), zi) in nets.iter().zip(subs.iter_mut()).zip(&mut z) {
+                ws.x[t * FEATURES] = uk;
+                ws.x[t * FEATURES + 1] = prev;
+                net.advance(ws, t, t + 1);
+                *zi = net.output(ws, t);
             }
-            let out = self.model.forward(&mut self.ws, &self.x);
-            self.y[WINDOW + k] = out;
-            if local {
-                self.model.input_gradient(&mut self.ws);
-                self.local[k * WINDOW * FEATURES..(k + 1) * WINDOW * FEATURES]
-                    .copy_from_slice(&self.ws.dx);
+            let out = match (mlp, combiner.as_mut()) {
+                (Some(mlp), Some(c)) => {
+                    c.x = z;
+                    mlp.forward(c)
+                }
+                _ => z[0],
+            };
+            if jacobian {
+                let dirs = k + 1;
+                for j in 0..dirs {
+                    dx[j * FEATURES] = if j == k { 1.0 } else { 0.0 };
+                    dx[j * FEATURES + 1] = dy[j];
+                }
+                for (net, ws) in nets.iter().zip(subs.iter_mut()) {
+                    net.tangent_step(ws, t, dirs, dx);
+                }
+                match (mlp, combiner.as_mut()) {
+                    (Some(mlp), Some(c)) => {
+                        mlp.backward(c, 1.0, None);
+                        for (j, v) in dy[..dirs].iter_mut().enumerate() {
+                            *v = subs.iter().zip(&c.dx).map(|(ws, g)| g * ws.tz[j]).sum();
+                        }
+                    }
+                    _ => dy[..dirs].copy_from_slice(&subs[0].tz[..dirs]),
+                }
+                d[k * n..k * n + dirs].copy_from_slice(&dy[..dirs]);
             }
+            y[k] = out;
+            prev = out;
         }
     }
 
@@ -168,7 +246,7 @@ impl Predictor {
         Self::check(past_u, past_y, future_u, out)?;
         self.run(past_u, past_y, future_u, false);
         let so = self.scaling.output;
-        for (o, &v) in out.iter_mut().zip(&self.y[WINDOW..]) {
+        for (o, &v) in out.iter_mut().zip(&self.y) {
             *o = so.unscale(v) + bias;
         }
         Ok(())
@@ -197,28 +275,8 @@ impl Predictor {
         }
         self.run(past_u, past_y, future_u, true);
         let (si, so) = (self.scaling.input, self.scaling.output);
-        for (o, &v) in out.iter_mut().zip(&self.y[WINDOW..]) {
+        for (o, &v) in out.iter_mut().zip(&self.y) {
             *o = so.unscale(v) + bias;
-        }
-        // D[k][j] = g_u[k][j − k + 19] + Σ_{m<k, m ≥ k−20} g_y[k][m − k + 20]·D[m][j]
-        self.d.clear();
-        self.d.resize(n * n, 0.0);
-        for k in 0..n {
-            let g = &self.local[k * WINDOW * FEATURES..(k + 1) * WINDOW * FEATURES];
-            let (done, row_and_rest) = self.d.split_at_mut(k * n);
-            let row = &mut row_and_rest[..n];
-            // direct: window step τ = j − k + 19 ∈ 0..20 ⇔ j ∈ k−19..=k
-            for j in (k + 1).saturating_sub(WINDOW)..=k {
-                row[j] = g[(j + WINDOW - 1 - k) * FEATURES];
-            }
-            // through the fed-back outputs ȳ_m, m ∈ max(0, k−20)..k
-            for m in k.saturating_sub(WINDOW)..k {
-                let gy = g[(m + WINDOW - k) * FEATURES + 1];
-                let dm = &done[m * n..m * n + m + 1];
-                for (r, &v) in row.iter_mut().zip(dm) {
-                    *r += gy * v;
-                }
-            }
         }
         let span = so.span();
         for (jrow, drow) in jacobian.chunks_exact_mut(n).zip(self.d.chunks_exact(n)) {
@@ -303,7 +361,7 @@ mod tests {
     }
 
     #[test]
-    fn second_step_feeds_back_the_unbiased_prediction() {
+    fn later_steps_continue_the_recurrence_on_the_unbiased_prediction() {
         let Surrogate::Single(net) = single(&[3]) else {
             unreachable!()
         };
@@ -313,21 +371,52 @@ mod tests {
         let mut out = [0.0; 2];
         p.predict(&past_u, &past_y, &future_u, 0.05, &mut out)
             .unwrap();
+        // the 21-step sequence by hand: window, then (u[t + 1], ŷ[t])
         let y1 = out[0] - 0.05;
-        let u: Vec<f64> = past_u[2..]
-            .iter()
-            .chain(&future_u[..2])
-            .map(|&v| scaling.input.scale(v))
+        let su = |v: f64| scaling.input.scale(v);
+        let sy = |v: f64| scaling.output.scale(v);
+        let mut pairs: Vec<(f64, f64)> = (0..WINDOW - 1)
+            .map(|tau| (su(past_u[tau + 1]), sy(past_y[tau])))
             .collect();
-        let y: Vec<f64> = past_y[1..]
-            .iter()
-            .chain(&[y1])
-            .map(|&v| scaling.output.scale(v))
-            .collect();
-        let direct = scaling
-            .output
-            .unscale(net.predict(&mut net.workspace(), &u, &y));
+        pairs.push((su(future_u[0]), sy(past_y[WINDOW - 1])));
+        pairs.push((su(future_u[1]), sy(y1)));
+        let mut ws = net.workspace();
+        ws.ensure_steps(pairs.len());
+        for (t, (a, b)) in pairs.iter().enumerate() {
+            ws.x[2 * t] = *a;
+            ws.x[2 * t + 1] = *b;
+        }
+        net.advance(&mut ws, 0, pairs.len());
+        let direct = scaling.output.unscale(net.output(&ws, WINDOW));
         assert!((out[1] - 0.05 - direct).abs() < 1e-14);
+    }
+
+    #[test]
+    fn the_kept_warm_up_is_only_reused_for_the_same_past() {
+        let model = two_layer(5, 4);
+        let (past_u, past_y, future_u) = scenario(20);
+        let mut other_y = past_y.clone();
+        other_y[3] += 0.01;
+        let mut reused = Predictor::new(model.clone(), Scaling::default());
+        let mut a = vec![0.0; 20];
+        reused
+            .predict(&past_u, &past_y, &future_u, 0.0, &mut a)
+            .unwrap();
+        reused
+            .predict(&past_u, &other_y, &future_u, 0.0, &mut a)
+            .unwrap();
+        let mut fresh = Predictor::new(model, Scaling::default());
+        let mut b = vec![0.0; 20];
+        fresh
+            .predict(&past_u, &other_y, &future_u, 0.0, &mut b)
+            .unwrap();
+        assert_eq!(a, b);
+        // and a changed past changes the prediction
+        let mut c = vec![0.0; 20];
+        fresh
+            .predict(&past_u, &past_y, &future_u, 0.0, &mut c)
+            .unwrap();
+        assert_ne!(a, c);
     }
 
     fn check_jacobian(model: Surrogate, n: usize) {

@@ -5,8 +5,15 @@
 //!
 //! * [`SequenceData`] (for [`SequenceNet`]): scaled series with the convention
 //!   of [`super::dataset::Series`] and [`super::rollout`]: u[k] is the input
-//!   applied over step k, y[k] the output at its end. Sample k (k ≥ 20) is the
-//!   window (ū[k − 19..=k], ȳ[k − 20..k]) with target ȳ[k].
+//!   applied over step k, y[k] the output at its end. Sample k (20 ≤ k,
+//!   k + H ≤ len, H = [`SequenceData::horizon`]) is an H-step recursive
+//!   prediction exactly as the controller makes it: the recurrence is warmed up
+//!   on (ū[j], ȳ[j − 1]), j = k − 19..k, then predicts ŷ[k + q], q = 0..H,
+//!   from (ū[k + q], ŷ[k + q − 1]) with ŷ[k − 1] = ȳ[k − 1] (free run: the
+//!   network is fed its own predictions, as in closed loop). The sample loss
+//!   is the mean of the H squared errors; the fed-back predictions are treated
+//!   as data in the backward pass (truncated: no gradient through the
+//!   feedback).
 //! * [`TabularData`] (for [`Mlp`]): rows of three inputs and a target.
 //!
 //! Samples are named by index; the training and validation sets are index
@@ -25,22 +32,40 @@ use rayon::prelude::*;
 
 use super::evaluate::WINDOW;
 use super::network::{
-    COMBINER_INPUTS, Mlp, MlpWorkspace, SequenceNet, SequenceWorkspace, fill_window,
+    COMBINER_INPUTS, FEATURES, Mlp, MlpWorkspace, SequenceNet, SequenceWorkspace, TwoLayerNet,
 };
+use super::rollout::HORIZON;
 use super::scaling::Scaling;
 
 /// Scaled time series for sequence models (see the module docs).
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SequenceData {
     /// Scaled inputs ū[k] (applied over step k).
     pub u: Vec<f64>,
     /// Scaled outputs ȳ[k] (at the end of step k).
     pub y: Vec<f64>,
+    /// Steps H of the recursive prediction each sample is scored on.
+    pub horizon: usize,
+}
+
+impl Default for SequenceData {
+    fn default() -> Self {
+        SequenceData::new(HORIZON)
+    }
 }
 
 impl SequenceData {
+    /// No data yet, samples predicting `horizon` (≥ 1) steps.
+    pub fn new(horizon: usize) -> SequenceData {
+        SequenceData {
+            u: Vec::new(),
+            y: Vec::new(),
+            horizon: horizon.max(1),
+        }
+    }
+
     /// Appends a raw series (u [m/s], y [m³/m³], equal lengths) after scaling
-    /// it, and returns the indices of its samples: windows never cross from
+    /// it, and returns the indices of its samples: sequences never cross from
     /// one appended series into the next.
     ///
     /// # Panics
@@ -50,21 +75,26 @@ impl SequenceData {
         let start = self.u.len();
         self.u.extend(u.iter().map(|&v| scaling.input.scale(v)));
         self.y.extend(y.iter().map(|&v| scaling.output.scale(v)));
-        sample_indices(u.len())
+        sample_indices(u.len(), self.horizon)
             .into_iter()
             .map(|k| k + start)
             .collect()
     }
 
-    /// Writes the window of sample k into `x` ((ū, ȳ) interleaved).
-    fn window(&self, k: usize, x: &mut [f64]) {
-        fill_window(x, &self.u[k + 1 - WINDOW..=k], &self.y[k - WINDOW..k]);
+    /// Writes the warm-up steps of sample k into `x` ((ū, ȳ) interleaved,
+    /// [`WINDOW`] − 1 steps).
+    fn warm_up(&self, k: usize, x: &mut [f64]) {
+        let s0 = k + 1 - WINDOW;
+        for (tau, pair) in x.chunks_exact_mut(FEATURES).take(WINDOW - 1).enumerate() {
+            pair[0] = self.u[s0 + tau];
+            pair[1] = self.y[s0 + tau - 1];
+        }
     }
 }
 
-/// The samples k = 20..len of one series of length `len`.
-pub fn sample_indices(len: usize) -> Vec<usize> {
-    (WINDOW..len).collect()
+/// The samples k = 20..=len − horizon of one series of length `len`.
+pub fn sample_indices(len: usize, horizon: usize) -> Vec<usize> {
+    (WINDOW..(len + 1).saturating_sub(horizon.max(1))).collect()
 }
 
 /// Rows of inputs and targets for the combiner.
@@ -74,84 +104,329 @@ pub struct TabularData {
     pub targets: Vec<f64>,
 }
 
-/// The combiner's training data: the sub-models' predictions on the samples
-/// of `data`, with the sample targets, in the order of `samples`.
+/// Runs the free-running prediction of sample k with each network (fed back
+/// their own predictions, or the combination of them when `combiner` is
+/// given), calling `row(q, z, target)` for q = 0..H.
+fn roll_sample(
+    nets: &[SequenceNet],
+    combiner: Option<(&Mlp, &mut MlpWorkspace)>,
+    ws: &mut [SequenceWorkspace],
+    data: &SequenceData,
+    k: usize,
+    mut row: impl FnMut(usize, [f64; COMBINER_INPUTS], f64),
+) {
+    let h = data.horizon;
+    for (net, w) in nets.iter().zip(ws.iter_mut()) {
+        w.ensure_steps(WINDOW - 1 + h);
+        data.warm_up(k, &mut w.x);
+        net.advance(w, 0, WINDOW - 1);
+    }
+    let mut combiner = combiner;
+    let mut prev = [data.y[k - 1]; COMBINER_INPUTS];
+    for q in 0..h {
+        let t = WINDOW - 1 + q;
+        let mut z = [0.0; COMBINER_INPUTS];
+        for (i, (net, w)) in nets.iter().zip(ws.iter_mut()).enumerate() {
+            w.x[t * FEATURES] = data.u[k + q];
+            w.x[t * FEATURES + 1] = prev[i];
+            net.advance(w, t, t + 1);
+            z[i] = net.output(w, t);
+        }
+        match combiner.as_mut() {
+            Some((mlp, c)) => prev = [mlp.predict(c, z); COMBINER_INPUTS],
+            None => prev = z,
+        }
+        row(q, z, data.y[k + q]);
+    }
+}
+
+/// The combiner's training data: every `horizon`-th sample of `samples` is
+/// predicted `horizon` steps ahead by each sub-model on its own (each fed its
+/// own predictions back); every step gives a row (M1, M2, M3 predictions) →
+/// target.
 pub fn combiner_data(
     sub_models: &[SequenceNet; 3],
     data: &SequenceData,
     samples: &[usize],
 ) -> TabularData {
-    let mut ws: Vec<SequenceWorkspace> = sub_models.iter().map(SequenceNet::workspace).collect();
+    combiner_rows(sub_models, None, data, samples)
+}
+
+/// As [`combiner_data`], but the sub-models are fed back the combination of
+/// their predictions by `combiner`, as in the two-layer network's own
+/// rollout: the data for refining a combiner trained on [`combiner_data`].
+pub fn combiner_data_closed_loop(
+    sub_models: &[SequenceNet; 3],
+    combiner: &Mlp,
+    data: &SequenceData,
+    samples: &[usize],
+) -> TabularData {
+    combiner_rows(sub_models, Some(combiner), data, samples)
+}
+
+fn combiner_rows(
+    sub_models: &[SequenceNet; 3],
+    combiner: Option<&Mlp>,
+    data: &SequenceData,
+    samples: &[usize],
+) -> TabularData {
+    let starts: Vec<usize> = samples.iter().copied().step_by(data.horizon).collect();
+    let parts: Vec<TabularData> = starts
+        .par_chunks(64)
+        .map(|chunk| {
+            let mut ws: Vec<SequenceWorkspace> =
+                sub_models.iter().map(SequenceNet::workspace).collect();
+            let mut cws = combiner.map(Mlp::workspace);
+            let mut out = TabularData::default();
+            for &k in chunk {
+                let c = combiner.zip(cws.as_mut());
+                roll_sample(sub_models, c, &mut ws, data, k, |_, z, target| {
+                    out.inputs.push(z);
+                    out.targets.push(target);
+                });
+            }
+            out
+        })
+        .collect();
     let mut out = TabularData::default();
-    for &k in samples {
-        let mut row = [0.0; COMBINER_INPUTS];
-        for ((net, w), r) in sub_models.iter().zip(&mut ws).zip(&mut row) {
-            data.window(k, &mut w.x);
-            *r = net.forward(w);
-        }
-        out.inputs.push(row);
-        out.targets.push(data.y[k]);
+    for p in parts {
+        out.inputs.extend(p.inputs);
+        out.targets.extend(p.targets);
     }
     out
 }
 
-/// A model the trainer can fit: one scalar prediction per sample.
+/// A model the trainer can fit.
 pub trait Trainable: Sync {
     type Data: Sync;
     type Workspace: Send;
     fn parameters(&self) -> &[f64];
     fn parameters_mut(&mut self) -> &mut [f64];
     fn new_workspace(&self) -> Self::Workspace;
-    /// Forward pass on sample `k`: (prediction, target).
-    fn forward_sample(&self, ws: &mut Self::Workspace, data: &Self::Data, k: usize) -> (f64, f64);
-    /// After `forward_sample`: adds `dout`·∂ŷ/∂θ to `grad`.
-    fn backward_sample(&self, ws: &mut Self::Workspace, dout: f64, grad: &mut [f64]);
+    /// Forward pass on sample `k`: its loss (a mean squared error).
+    fn sample_loss(&self, ws: &mut Self::Workspace, data: &Self::Data, k: usize) -> f64;
+    /// After `sample_loss`: adds `scale`·∂loss/∂θ to `grad`.
+    fn backward_sample(&self, ws: &mut Self::Workspace, scale: f64, grad: &mut [f64]);
+    /// Called after the parameters were changed through `parameters_mut`.
+    fn parameters_changed(&mut self) {}
+}
+
+/// Workspace of a [`SequenceNet`] in training: the network's and the
+/// sample's length.
+#[derive(Debug, Clone)]
+pub struct SequenceTrainWorkspace {
+    ws: SequenceWorkspace,
+    steps: usize,
 }
 
 impl Trainable for SequenceNet {
     type Data = SequenceData;
-    type Workspace = SequenceWorkspace;
+    type Workspace = SequenceTrainWorkspace;
     fn parameters(&self) -> &[f64] {
         self.params()
     }
     fn parameters_mut(&mut self) -> &mut [f64] {
         self.params_mut()
     }
-    fn new_workspace(&self) -> SequenceWorkspace {
-        self.workspace()
+    fn new_workspace(&self) -> SequenceTrainWorkspace {
+        SequenceTrainWorkspace {
+            ws: self.workspace(),
+            steps: 0,
+        }
     }
-    fn forward_sample(
-        &self,
-        ws: &mut SequenceWorkspace,
-        data: &SequenceData,
-        k: usize,
-    ) -> (f64, f64) {
-        data.window(k, &mut ws.x);
-        (self.forward(ws), data.y[k])
+    fn sample_loss(&self, tw: &mut SequenceTrainWorkspace, data: &SequenceData, k: usize) -> f64 {
+        let h = data.horizon;
+        let steps = WINDOW - 1 + h;
+        let ws = &mut tw.ws;
+        ws.ensure_steps(steps);
+        tw.steps = steps;
+        data.warm_up(k, &mut ws.x);
+        self.advance(ws, 0, WINDOW - 1);
+        ws.dout[..WINDOW - 1].fill(0.0);
+        let mut prev = data.y[k - 1];
+        let mut loss = 0.0;
+        for q in 0..h {
+            let t = WINDOW - 1 + q;
+            ws.x[t * FEATURES] = data.u[k + q];
+            ws.x[t * FEATURES + 1] = prev;
+            self.advance(ws, t, t + 1);
+            let out = self.output(ws, t);
+            let e = out - data.y[k + q];
+            loss += e * e;
+            ws.dout[t] = 2.0 * e / h as f64;
+            prev = out;
+        }
+        loss / h as f64
     }
-    fn backward_sample(&self, ws: &mut SequenceWorkspace, dout: f64, grad: &mut [f64]) {
-        self.backward(ws, dout, Some(grad), false);
+    fn backward_sample(&self, tw: &mut SequenceTrainWorkspace, scale: f64, grad: &mut [f64]) {
+        let steps = tw.steps;
+        tw.ws.dout[..steps].iter_mut().for_each(|d| *d *= scale);
+        self.backward_sequence(&mut tw.ws, steps, Some(grad), false);
     }
+}
+
+/// Workspace of an [`Mlp`] in training: the network's and the residual.
+#[derive(Debug, Clone)]
+pub struct MlpTrainWorkspace {
+    ws: MlpWorkspace,
+    residual: f64,
 }
 
 impl Trainable for Mlp {
     type Data = TabularData;
-    type Workspace = MlpWorkspace;
+    type Workspace = MlpTrainWorkspace;
     fn parameters(&self) -> &[f64] {
         self.params()
     }
     fn parameters_mut(&mut self) -> &mut [f64] {
         self.params_mut()
     }
-    fn new_workspace(&self) -> MlpWorkspace {
-        self.workspace()
+    fn new_workspace(&self) -> MlpTrainWorkspace {
+        MlpTrainWorkspace {
+            ws: self.workspace(),
+            residual: 0.0,
+        }
     }
-    fn forward_sample(&self, ws: &mut MlpWorkspace, data: &TabularData, k: usize) -> (f64, f64) {
-        ws.x = data.inputs[k];
-        (self.forward(ws), data.targets[k])
+    fn sample_loss(&self, tw: &mut MlpTrainWorkspace, data: &TabularData, k: usize) -> f64 {
+        tw.ws.x = data.inputs[k];
+        tw.residual = self.forward(&mut tw.ws) - data.targets[k];
+        tw.residual * tw.residual
     }
-    fn backward_sample(&self, ws: &mut MlpWorkspace, dout: f64, grad: &mut [f64]) {
-        self.backward(ws, dout, Some(grad));
+    fn backward_sample(&self, tw: &mut MlpTrainWorkspace, scale: f64, grad: &mut [f64]) {
+        self.backward(&mut tw.ws, 2.0 * tw.residual * scale, Some(grad));
+    }
+}
+
+/// The two-layer network trained end to end (M1–M3 and M_A together) on
+/// the free-running loss of [`SequenceData`] samples, the sub-models fed back
+/// the combined prediction exactly as in [`super::rollout`]. Used to refine a
+/// network trained stage-wise (sub-models on their ranges, then M_A).
+///
+/// Parameters: M1, M2, M3, M_A concatenated (the order of
+/// [`super::Surrogate::params`]); kept flat here and copied into the networks
+/// after every update.
+#[derive(Debug, Clone)]
+pub struct JointTwoLayer {
+    net: TwoLayerNet,
+    params: Vec<f64>,
+}
+
+impl JointTwoLayer {
+    pub fn new(net: TwoLayerNet) -> JointTwoLayer {
+        let mut params = Vec::new();
+        for s in &net.sub_models {
+            params.extend_from_slice(s.params());
+        }
+        params.extend_from_slice(net.combiner.params());
+        JointTwoLayer { net, params }
+    }
+
+    pub fn into_inner(self) -> TwoLayerNet {
+        self.net
+    }
+
+    fn offsets(&self) -> [usize; 4] {
+        let mut o = [0; 4];
+        let mut at = 0;
+        for (i, s) in self.net.sub_models.iter().enumerate() {
+            o[i] = at;
+            at += s.n_params();
+        }
+        o[3] = at;
+        o
+    }
+}
+
+/// Workspace of [`JointTwoLayer`] in training.
+#[derive(Debug, Clone)]
+pub struct JointWorkspace {
+    subs: Vec<SequenceWorkspace>,
+    mlp: MlpWorkspace,
+    /// Sub-model predictions per predicted step.
+    z: Vec<[f64; COMBINER_INPUTS]>,
+    /// ∂loss/∂ŷ per predicted step.
+    dy: Vec<f64>,
+    horizon: usize,
+}
+
+impl Trainable for JointTwoLayer {
+    type Data = SequenceData;
+    type Workspace = JointWorkspace;
+    fn parameters(&self) -> &[f64] {
+        &self.params
+    }
+    fn parameters_mut(&mut self) -> &mut [f64] {
+        &mut self.params
+    }
+    fn parameters_changed(&mut self) {
+        let o = self.offsets();
+        for (i, s) in self.net.sub_models.iter_mut().enumerate() {
+            let n = s.n_params();
+            s.params_mut().copy_from_slice(&self.params[o[i]..o[i] + n]);
+        }
+        self.net
+            .combiner
+            .params_mut()
+            .copy_from_slice(&self.params[o[3]..]);
+    }
+    fn new_workspace(&self) -> JointWorkspace {
+        JointWorkspace {
+            subs: self
+                .net
+                .sub_models
+                .iter()
+                .map(SequenceNet::workspace)
+                .collect(),
+            mlp: self.net.combiner.workspace(),
+            z: Vec::new(),
+            dy: Vec::new(),
+            horizon: 0,
+        }
+    }
+    fn sample_loss(&self, ws: &mut JointWorkspace, data: &SequenceData, k: usize) -> f64 {
+        let h = data.horizon;
+        ws.horizon = h;
+        ws.z.clear();
+        ws.dy.clear();
+        let mut loss = 0.0;
+        let JointWorkspace {
+            subs, mlp, z, dy, ..
+        } = ws;
+        roll_sample(
+            &self.net.sub_models,
+            Some((&self.net.combiner, mlp)),
+            subs,
+            data,
+            k,
+            |_, zq, _| z.push(zq),
+        );
+        for (q, zq) in z.iter().enumerate() {
+            let e = self.net.combiner.predict(mlp, *zq) - data.y[k + q];
+            loss += e * e;
+            dy.push(2.0 * e / h as f64);
+        }
+        loss / h as f64
+    }
+    fn backward_sample(&self, ws: &mut JointWorkspace, scale: f64, grad: &mut [f64]) {
+        let o = self.offsets();
+        let h = ws.horizon;
+        let steps = WINDOW - 1 + h;
+        for s in &mut ws.subs {
+            s.dout[..steps].fill(0.0);
+        }
+        let (g_subs, g_mlp) = grad.split_at_mut(o[3]);
+        for q in 0..h {
+            let d = ws.dy[q] * scale;
+            self.net.combiner.predict(&mut ws.mlp, ws.z[q]);
+            self.net.combiner.backward(&mut ws.mlp, d, Some(g_mlp));
+            for (s, &dz) in ws.subs.iter_mut().zip(&ws.mlp.dx) {
+                s.dout[WINDOW - 1 + q] = dz;
+            }
+        }
+        for (i, (net, s)) in self.net.sub_models.iter().zip(&mut ws.subs).enumerate() {
+            let n = net.n_params();
+            net.backward_sequence(s, steps, Some(&mut g_subs[o[i]..o[i] + n]), false);
+        }
     }
 }
 
@@ -251,7 +526,7 @@ struct Shard<W> {
     loss: f64,
 }
 
-/// Sum over `samples` of the squared errors, in fixed shards (deterministic).
+/// Sum over `samples` of the sample losses, in fixed shards (deterministic).
 fn squared_error_sum<M: Trainable>(
     model: &M,
     data: &M::Data,
@@ -268,11 +543,9 @@ fn squared_error_sum<M: Trainable>(
         let lo = (s * chunk).min(samples.len());
         let hi = ((s + 1) * chunk).min(samples.len());
         for &k in &samples[lo..hi] {
-            let (pred, target) = model.forward_sample(&mut shard.ws, data, k);
-            let e = pred - target;
-            shard.loss += e * e;
+            shard.loss += model.sample_loss(&mut shard.ws, data, k);
             if let Some(scale) = grad_scale {
-                model.backward_sample(&mut shard.ws, 2.0 * e * scale, &mut shard.grad);
+                model.backward_sample(&mut shard.ws, scale, &mut shard.grad);
             }
         }
     });
@@ -376,6 +649,7 @@ pub fn train<M: Trainable>(
                 *vi = config.beta2 * *vi + (1.0 - config.beta2) * g * g;
                 *p -= config.learning_rate * (*mi / c1) / ((*vi / c2).sqrt() + config.epsilon);
             }
+            model.parameters_changed();
         }
         let training_mse = loss_sum / batches as f64;
         let validation_mse = val_mse(model, &mut shards);
@@ -403,6 +677,7 @@ pub fn train<M: Trainable>(
         }
     }
     model.parameters_mut().copy_from_slice(&best);
+    model.parameters_changed();
     Ok(report)
 }
 
@@ -414,7 +689,7 @@ mod tests {
     /// piecewise-constant input.
     fn synthetic(len: usize, seed: u64) -> SequenceData {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut data = SequenceData::default();
+        let mut data = SequenceData::new(5);
         let mut y = 0.5;
         let mut u = 0.0;
         for k in 0..len {
@@ -442,24 +717,26 @@ mod tests {
     }
 
     #[test]
-    fn windows_follow_the_series_convention() {
+    fn samples_follow_the_series_convention() {
         let scaling = Scaling::default();
-        let u: Vec<f64> = (0..25).map(|k| k as f64 * 1e-7).collect();
-        let y: Vec<f64> = (0..25).map(|k| 0.12 + 0.01 * k as f64).collect();
-        let mut data = SequenceData::default();
-        assert_eq!(data.push_series(&u[..22], &y[..22], &scaling), vec![20, 21]);
+        let u: Vec<f64> = (0..30).map(|k| k as f64 * 1e-7).collect();
+        let y: Vec<f64> = (0..30).map(|k| 0.12 + 0.01 * k as f64).collect();
+        let mut data = SequenceData::new(3);
+        // sample k needs y[k − 20] and y[k + 2]
+        assert_eq!(data.push_series(&u[..24], &y[..24], &scaling), vec![20, 21]);
         // a second series: its samples start 20 after its own beginning
         assert_eq!(
             data.push_series(&u, &y, &scaling),
-            (42..47).collect::<Vec<_>>()
+            (44..52).collect::<Vec<_>>()
         );
         let mut x = vec![0.0; 2 * WINDOW];
-        data.window(21, &mut x);
-        // last step: the input applied over step 21 and the output of step 20
-        assert_eq!(x[2 * WINDOW - 2], scaling.input.scale(u[21]));
-        assert_eq!(x[2 * WINDOW - 1], scaling.output.scale(y[20]));
+        data.warm_up(21, &mut x);
+        // first warm-up step: the input applied over step 2 and the output of step 1;
+        // last: the input over step 20 and the output of step 19
         assert_eq!(x[0], scaling.input.scale(u[2]));
         assert_eq!(x[1], scaling.output.scale(y[1]));
+        assert_eq!(x[2 * WINDOW - 4], scaling.input.scale(u[20]));
+        assert_eq!(x[2 * WINDOW - 3], scaling.output.scale(y[19]));
         assert_eq!(
             holdout(&[1, 2, 3, 4, 5, 6, 7, 8, 9, 10], 0.2),
             (vec![1, 2, 3, 4, 5, 6, 7, 8], vec![9, 10])
@@ -467,9 +744,37 @@ mod tests {
     }
 
     #[test]
+    fn sample_loss_is_the_free_running_prediction_error() {
+        // the loss of a sample is that of the rollout the controller makes
+        let scaling = Scaling::default();
+        let u: Vec<f64> = (0..40).map(|k| ((k % 7) as f64) * 1e-6).collect();
+        let y: Vec<f64> = (0..40).map(|k| 0.2 + 0.002 * k as f64).collect();
+        let mut data = SequenceData::new(5);
+        data.push_series(&u, &y, &scaling);
+        let net = SequenceNet::new(&[3], 11);
+        let mut tw = net.new_workspace();
+        let loss = net.sample_loss(&mut tw, &data, 25);
+        let mut p = crate::surrogate::Predictor::new(
+            crate::surrogate::Surrogate::Single(net.clone()),
+            scaling,
+        );
+        let mut out = [0.0; 5];
+        p.predict(&u[5..25], &y[5..25], &u[25..30], 0.0, &mut out)
+            .unwrap();
+        let expected = (0..5)
+            .map(|q| (scaling.output.scale(out[q]) - data.y[25 + q]).powi(2))
+            .sum::<f64>()
+            / 5.0;
+        assert!(
+            (loss - expected).abs() < 1e-12 * expected,
+            "{loss} vs {expected}"
+        );
+    }
+
+    #[test]
     fn training_reduces_validation_error_and_is_deterministic() {
         let data = synthetic(260, 1);
-        let (tr, va) = holdout(&sample_indices(data.u.len()), 0.25);
+        let (tr, va) = holdout(&sample_indices(data.u.len(), data.horizon), 0.25);
         let run = || {
             let mut net = SequenceNet::new(&[4], 3);
             let mut epochs = 0;
@@ -498,13 +803,10 @@ mod tests {
             report.best_validation_mse
         );
         // the model holds the best parameters: recompute the validation MSE
-        let mut ws = net.workspace();
+        let mut ws = net.new_workspace();
         let mse = va
             .iter()
-            .map(|&k| {
-                let (p, t) = net.forward_sample(&mut ws, &data, k);
-                (p - t) * (p - t)
-            })
+            .map(|&k| net.sample_loss(&mut ws, &data, k))
             .sum::<f64>()
             / va.len() as f64;
         assert!((mse - report.best_validation_mse).abs() < 1e-12 * mse);
@@ -515,6 +817,48 @@ mod tests {
             .unwrap();
         let (again, _) = pool.install(run);
         assert_eq!(net.params(), again.params());
+    }
+
+    /// With a one-step horizon nothing is fed back, so the gradient of the
+    /// joint two-layer loss is exact: compare it with finite differences.
+    #[test]
+    fn joint_two_layer_gradient_matches_finite_differences() {
+        let scaling = Scaling::default();
+        let u: Vec<f64> = (0..30).map(|k| ((k % 4) as f64) * 2e-6).collect();
+        let y: Vec<f64> = (0..30)
+            .map(|k| 0.2 + 0.1 * (k as f64 / 5.0).sin())
+            .collect();
+        let mut data = SequenceData::new(1);
+        data.push_series(&u, &y, &scaling);
+        let mut joint = JointTwoLayer::new(TwoLayerNet {
+            sub_models: [
+                SequenceNet::new(&[2], 1),
+                SequenceNet::new(&[3], 2),
+                SequenceNet::new(&[2, 2], 3),
+            ],
+            combiner: Mlp::new(3, 4),
+        });
+        let mut p = joint.parameters().to_vec();
+        crate::surrogate::network::tests::jiggle(&mut p, 6, 0.3);
+        joint.parameters_mut().copy_from_slice(&p);
+        joint.parameters_changed();
+        let mut ws = joint.new_workspace();
+        joint.sample_loss(&mut ws, &data, 24);
+        let mut grad = vec![0.0; p.len()];
+        joint.backward_sample(&mut ws, 1.0, &mut grad);
+        let eps = 1e-6;
+        for k in 0..p.len() {
+            let loss_at = |v: f64| {
+                let mut j = joint.clone();
+                j.parameters_mut()[k] = v;
+                j.parameters_changed();
+                j.sample_loss(&mut j.new_workspace(), &data, 24)
+            };
+            let fd = (loss_at(p[k] + eps) - loss_at(p[k] - eps)) / (2.0 * eps);
+            let err = (fd - grad[k]).abs() / fd.abs().max(grad[k].abs()).max(1e-4);
+            assert!(err < 1e-5, "param {k}: fd {fd} vs {}", grad[k]);
+        }
+        assert!(grad.iter().map(|g| g.abs()).fold(0.0, f64::max) > 1e-3);
     }
 
     #[test]
