@@ -4,8 +4,10 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use rootzone::experiment::{ExperimentId, ExperimentOptions, run_experiment};
 use rootzone::simulate::{SimulateOptions, run as run_simulation};
 use rootzone::soil::Texture;
+use rootzone::surrogate::pipeline::{ProgressEvent, TrainPlan, run_training};
 
 #[derive(Parser)]
 #[command(
@@ -47,6 +49,44 @@ enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Generate (or load cached) data and train the five surrogate networks.
+    Train {
+        /// Soil texture the models are trained for.
+        #[arg(long, default_value = "sandy-loam")]
+        soil: String,
+        /// Folder for the model files and the training report.
+        #[arg(long, default_value = "models")]
+        out: PathBuf,
+        /// Seed of the data, the initial weights and the shuffling.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Tiny networks on small data (under a minute): for tests and smoke runs.
+        #[arg(long)]
+        quick: bool,
+        /// Folder of the generated-data cache.
+        #[arg(long, default_value = "data/cache")]
+        cache: PathBuf,
+    },
+    /// Reproduce one of the paper's experiments (tables as Markdown and CSV, figures as SVG).
+    Experiment {
+        /// e1, e2 or e3.
+        id: String,
+        /// Folder of the trained model files.
+        #[arg(long, default_value = "models")]
+        models: PathBuf,
+        /// Folder for the tables and figures.
+        #[arg(long, default_value = "reports")]
+        out: PathBuf,
+        /// Seed of the fresh validation data.
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        /// Folder of the generated-data cache.
+        #[arg(long, default_value = "data/cache")]
+        cache: PathBuf,
+        /// Validation samples per set (smaller for smoke runs).
+        #[arg(long, default_value_t = 5000)]
+        samples: usize,
+    },
 }
 
 /// Exit code for bad input (files, values, arguments).
@@ -78,6 +118,40 @@ fn main() -> ExitCode {
             })?;
             Ok(())
         })(),
+        Command::Train {
+            soil,
+            out,
+            seed,
+            quick,
+            cache,
+        } => (|| {
+            let soil: Texture = soil.parse()?;
+            train(soil, &out, seed, quick, &cache)
+        })(),
+        Command::Experiment {
+            id,
+            models,
+            out,
+            seed,
+            cache,
+            samples,
+        } => (|| {
+            let id: ExperimentId = id.parse()?;
+            let written = run_experiment(
+                id,
+                &ExperimentOptions {
+                    models,
+                    out,
+                    seed,
+                    cache,
+                    samples,
+                },
+            )?;
+            for path in written {
+                println!("wrote {}", path.display());
+            }
+            Ok(())
+        })(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -86,4 +160,76 @@ fn main() -> ExitCode {
             ExitCode::from(BAD_INPUT)
         }
     }
+}
+
+/// `rootzone train`: one progress bar per network.
+fn train(
+    soil: Texture,
+    out: &std::path::Path,
+    seed: u64,
+    quick: bool,
+    cache: &std::path::Path,
+) -> anyhow::Result<()> {
+    use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+    let plan = if quick {
+        TrainPlan::quick(seed)
+    } else {
+        TrainPlan::full(seed)
+    };
+    let bars = MultiProgress::new();
+    let style = ProgressStyle::with_template(
+        "{prefix:>18} [{bar:30}] {pos:>3}/{len:3} epochs {msg} ({elapsed})",
+    )
+    .expect("a valid progress template")
+    .progress_chars("=> ");
+    let mut current: Option<ProgressBar> = None;
+    let outcome = run_training(&plan, soil, out, cache, |event| match event {
+        ProgressEvent::Stage {
+            network,
+            what,
+            max_epochs,
+        } => {
+            if max_epochs == 0 {
+                let _ = bars.println(format!("{network}: {what}"));
+            } else {
+                let bar = bars.add(ProgressBar::new(max_epochs as u64));
+                bar.set_style(style.clone());
+                bar.set_prefix(network);
+                current = Some(bar);
+            }
+        }
+        ProgressEvent::Epoch { report, .. } => {
+            if let Some(bar) = &current {
+                bar.set_position(report.epoch as u64);
+                bar.set_message(format!(
+                    "val MSE {:.3e} (best {:.3e} at {})",
+                    report.validation_mse, report.best_validation_mse, report.best_epoch
+                ));
+            }
+        }
+        ProgressEvent::Finished {
+            seconds,
+            best_validation_mse,
+            ..
+        } => {
+            if let Some(bar) = current.take() {
+                bar.finish_with_message(format!(
+                    "best val MSE {best_validation_mse:.3e} in {seconds:.1} s"
+                ));
+            }
+        }
+    })?;
+    for (file, s) in &outcome.scores {
+        println!(
+            "{file}: NRMSE 1/10/20 steps {:.4} {:.4} {:.4}",
+            s[0], s[1], s[2]
+        );
+    }
+    println!(
+        "wrote {} model files and {} in {:.1} s",
+        outcome.files.len(),
+        outcome.report.display(),
+        outcome.seconds
+    );
+    Ok(())
 }

@@ -27,6 +27,7 @@ pub mod evaluate;
 pub mod file;
 pub(crate) mod lstm;
 pub mod network;
+pub mod pipeline;
 pub mod rollout;
 pub mod scaling;
 pub mod train;

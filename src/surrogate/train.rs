@@ -431,11 +431,19 @@ impl Trainable for JointTwoLayer {
 }
 
 /// Samples of one data set.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug)]
 pub struct Split<'a, D> {
     pub data: &'a D,
     pub samples: &'a [usize],
 }
+
+impl<D> Clone for Split<'_, D> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<D> Copy for Split<'_, D> {}
 
 /// Splits `samples` into (training, validation), the validation set being the
 /// last `fraction` of them (a contiguous block: no window overlaps across the

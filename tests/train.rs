@@ -1,0 +1,194 @@
+//! `rootzone train` and `rootzone experiment` end to end (the real binary),
+//! and the shipped models against fresh data.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use rootzone::soil::FieldSettings;
+use rootzone::surrogate::dataset::load_or_generate;
+use rootzone::surrogate::pipeline::{nrmse_scores, training_weather, validation_spec};
+use rootzone::surrogate::{Mlp, ModelFile, Predictor, SequenceNet, Surrogate, TwoLayerNet};
+
+fn rootzone(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_rootzone"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+fn recorded(file: &ModelFile) -> [f64; 3] {
+    ["nrmse_1", "nrmse_10", "nrmse_20"].map(|k| file.metadata.scores[k])
+}
+
+fn validation(
+    which: usize,
+    samples: usize,
+    seed: u64,
+    cache: &Path,
+) -> rootzone::surrogate::dataset::Series {
+    load_or_generate(
+        &validation_spec(which, samples, seed),
+        "sandy-loam",
+        &FieldSettings::default(),
+        training_weather().steps(),
+        cache,
+    )
+    .unwrap()
+}
+
+#[test]
+fn quick_training_end_to_end_learns_and_the_experiments_run_on_its_models() {
+    let dir = tempfile::tempdir().unwrap();
+    let (models, cache, reports) = (
+        dir.path().join("models"),
+        dir.path().join("cache"),
+        dir.path().join("reports"),
+    );
+    let s = |p: &PathBuf| p.display().to_string();
+    let out = rootzone(&[
+        "train",
+        "--quick",
+        "--out",
+        &s(&models),
+        "--cache",
+        &s(&cache),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for f in [
+        "m1.json",
+        "m2.json",
+        "m3.json",
+        "single-lstm.json",
+        "two-layer.json",
+        "training-report.md",
+    ] {
+        assert!(models.join(f).is_file(), "{f} missing");
+    }
+    // the recorded scores are those of the file's model on the quick plan's validation set
+    // (600 samples, seed 1), recomputed here independently
+    let two = ModelFile::load(&models.join("two-layer.json")).unwrap();
+    let series = validation(3, 600, 1, &cache);
+    let trained = nrmse_scores(&mut two.predictor(), &series);
+    for (a, b) in trained.iter().zip(recorded(&two)) {
+        assert!((a - b).abs() < 1e-12, "{a} vs recorded {b}");
+    }
+    // an untrained network of the same architecture
+    let Surrogate::TwoLayer(net) = &two.model else {
+        panic!("two-layer.json holds a two-layer model")
+    };
+    let fresh = TwoLayerNet {
+        sub_models: [0, 1, 2]
+            .map(|i| SequenceNet::new(&net.sub_models[i].hidden_sizes(), 100 + i as u64)),
+        combiner: Mlp::new(net.combiner.hidden(), 103),
+    };
+    let untrained = nrmse_scores(
+        &mut Predictor::new(Surrogate::TwoLayer(fresh), two.scaling),
+        &series,
+    );
+    for (u, t) in untrained.iter().zip(trained) {
+        assert!(
+            *u > 5.0 * t,
+            "untrained {untrained:?} vs trained {trained:?}"
+        );
+    }
+
+    let out = rootzone(&[
+        "experiment",
+        "e2",
+        "--models",
+        &s(&models),
+        "--out",
+        &s(&reports),
+        "--cache",
+        &s(&cache),
+        "--samples",
+        "400",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = std::fs::read_to_string(reports.join("e2.csv")).unwrap();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 3);
+    assert!(rows.iter().flatten().all(|v| v.is_finite()));
+    assert_eq!(
+        rows.iter().map(|r| r[0]).collect::<Vec<_>>(),
+        [1.0, 10.0, 20.0]
+    );
+    let md = std::fs::read_to_string(reports.join("e2.md")).unwrap();
+    assert!(md.contains("| 20 |"));
+    let svg = std::fs::read_to_string(reports.join("e2.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("<polyline"));
+
+    // a corrupt model file: exit 2, the file named
+    std::fs::write(
+        models.join("single-lstm.json"),
+        "{\"format\": \"rootzone-surrogate\", ",
+    )
+    .unwrap();
+    let out = rootzone(&[
+        "experiment",
+        "e2",
+        "--models",
+        &s(&models),
+        "--out",
+        &s(&reports),
+        "--cache",
+        &s(&cache),
+        "--samples",
+        "400",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("single-lstm.json") && err.starts_with("error:"),
+        "{err}"
+    );
+    assert_eq!(err.lines().count(), 1, "{err}");
+}
+
+#[test]
+fn unknown_soil_and_experiment_are_clear_errors() {
+    let out = rootzone(&[
+        "train",
+        "--quick",
+        "--soil",
+        "moon-dust",
+        "--out",
+        "/nonexistent/x",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("moon-dust"));
+    let out = rootzone(&["experiment", "e9"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("e9"));
+}
+
+#[test]
+fn shipped_models_match_their_recorded_scores_on_fresh_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    // a validation set with a seed no training run used
+    let series = validation(3, 3000, 4242, dir.path());
+    for file in ["two-layer.json", "single-lstm.json"] {
+        let model = ModelFile::load(&models.join(file)).unwrap();
+        let fresh = nrmse_scores(&mut model.predictor(), &series);
+        for (f, r) in fresh.iter().zip(recorded(&model)) {
+            assert!(
+                *f <= 1.2 * r,
+                "{file}: fresh {fresh:?} vs recorded {:?}",
+                recorded(&model)
+            );
+        }
+    }
+}
