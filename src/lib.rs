@@ -5,6 +5,7 @@
 //! simulator over files for the CLI. Data flows one way: files and
 //! measurements in at the edge, physics in the middle, reports out.
 
+pub mod control;
 pub mod experiment;
 pub mod simulate;
 pub mod soil;

@@ -1,0 +1,265 @@
+//! The zone MPC: zone formula, optimality of the SQP (KKT on a convex case,
+//! against a slow independent optimiser on the shipped surrogate), fallback.
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rootzone::control::{
+    ModelError, MpcSettings, PredictionModel, SolveStatus, SurrogateModel, ZoneMpc, ZoneSettings,
+    objective,
+};
+use rootzone::surrogate::ModelFile;
+
+#[test]
+fn zone_matches_hand_computed_values() {
+    let z = ZoneSettings {
+        low0: 0.18,
+        up0: 0.23,
+        y_low: 0.205,
+        y_up: 0.205,
+        mu: 1.0,
+    };
+    // k = 2 of 20: e^0.1 = 1.1051709, e^−0.1 = 0.9048374
+    let (low, up) = z.bounds(2, 20);
+    assert!((low - 0.198_930_76).abs() < 1e-7, "{low}");
+    assert!((up - 0.208_112_61).abs() < 1e-7, "{up}");
+    // k = 4: 0.18·e^0.2 = 0.2199 > 0.205 and 0.23·e^−0.2 = 0.1883 < 0.205: the terminal zone
+    assert_eq!(z.bounds(4, 20), (0.205, 0.205));
+    assert_eq!(z.bounds(20, 20), (0.205, 0.205));
+    // μ = 0: time-invariant
+    let fixed = ZoneSettings::default();
+    assert_eq!(fixed.bounds(1, 20), (0.18, 0.23));
+    assert_eq!(fixed.bounds(20, 20), (0.18, 0.23));
+    assert!(fixed.problem().is_none());
+    assert!(ZoneSettings { mu: -1.0, ..z }.problem().is_some());
+}
+
+/// ŷ_k = a_k + Σ_{j ≤ k} b·ρ^(k−j)·u_j: linear, so the MPC problem is convex.
+struct Linear {
+    a: Vec<f64>,
+    b: f64,
+    rho: f64,
+}
+
+impl PredictionModel for Linear {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        for (k, o) in out.iter_mut().enumerate() {
+            *o = self.a[k]
+                + (0..=k)
+                    .map(|j| self.b * self.rho.powi((k - j) as i32) * plan[j])
+                    .sum::<f64>();
+        }
+        Ok(())
+    }
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        let n = out.len();
+        self.predict(plan, out)?;
+        for k in 0..n {
+            for j in 0..n {
+                jac[k * n + j] = if j <= k {
+                    self.b * self.rho.powi((k - j) as i32)
+                } else {
+                    0.0
+                };
+            }
+        }
+        Ok(())
+    }
+}
+
+fn cost(settings: &MpcSettings, model: &mut dyn PredictionModel, ubar: &[f64]) -> f64 {
+    let plan: Vec<f64> = ubar.iter().map(|v| v * settings.u_max).collect();
+    let mut y = vec![0.0; plan.len()];
+    match model.predict(&plan, &mut y) {
+        Ok(()) => objective(settings, &y, ubar),
+        Err(_) => f64::INFINITY,
+    }
+}
+
+fn fd_gradient(settings: &MpcSettings, model: &mut dyn PredictionModel, ubar: &[f64]) -> Vec<f64> {
+    let h = 1e-6;
+    (0..ubar.len())
+        .map(|j| {
+            let (mut up, mut down) = (ubar.to_vec(), ubar.to_vec());
+            up[j] += h;
+            down[j] -= h;
+            (cost(settings, model, &up) - cost(settings, model, &down)) / (2.0 * h)
+        })
+        .collect()
+}
+
+#[test]
+fn sqp_solution_satisfies_the_kkt_conditions_of_a_convex_problem() {
+    let settings = MpcSettings::default();
+    for (start, b, rho) in [(0.15, 600.0, 0.85), (0.26, 800.0, 0.7), (0.19, 300.0, 0.9)] {
+        // dries out by 0.004 per step without irrigation
+        let a: Vec<f64> = (0..20).map(|k| start - 0.004 * k as f64).collect();
+        let mut model = Linear { a, b, rho };
+        let mut mpc = ZoneMpc::new(settings);
+        let sol = mpc.solve(&mut model);
+        assert_eq!(sol.status, SolveStatus::Converged, "{sol:?}");
+        let ubar: Vec<f64> = sol.plan.iter().map(|u| u / settings.u_max).collect();
+        let g = fd_gradient(&settings, &mut model, &ubar);
+        let scale = g.iter().map(|v| v.abs()).fold(1.0, f64::max);
+        for (j, (&u, &gj)) in ubar.iter().zip(&g).enumerate() {
+            let tol = 1e-3 * scale;
+            if u <= 1e-6 {
+                assert!(gj >= -tol, "ū_{j} = 0 but ∂J/∂ū = {gj}");
+            } else if u >= 1.0 - 1e-6 {
+                assert!(gj <= tol, "ū_{j} = 1 but ∂J/∂ū = {gj}");
+            } else {
+                assert!(gj.abs() <= tol, "interior ū_{j} = {u}, ∂J/∂ū = {gj}");
+            }
+        }
+        // nontrivial: something is irrigated when starting dry
+        if start < 0.18 {
+            assert!(sol.plan.iter().any(|&u| u > 1e-7));
+        }
+    }
+}
+
+/// Projected gradient with finite-difference gradients and Armijo
+/// backtracking, run from a start until it stalls.
+fn slow_optimum(settings: &MpcSettings, model: &mut dyn PredictionModel, start: Vec<f64>) -> f64 {
+    let mut u = start;
+    let mut j = cost(settings, model, &u);
+    let mut step = 1e-3;
+    for _ in 0..400 {
+        let g = fd_gradient(settings, model, &u);
+        let mut improved = false;
+        for _ in 0..30 {
+            let trial: Vec<f64> = u
+                .iter()
+                .zip(&g)
+                .map(|(x, gx)| (x - step * gx).clamp(0.0, 1.0))
+                .collect();
+            let decrease: f64 = u
+                .iter()
+                .zip(&trial)
+                .zip(&g)
+                .map(|((a, b), gx)| gx * (a - b))
+                .sum();
+            let jt = cost(settings, model, &trial);
+            if jt <= j - 1e-4 * decrease && jt < j {
+                u = trial;
+                j = jt;
+                step *= 2.0;
+                improved = true;
+                break;
+            }
+            step *= 0.5;
+        }
+        if !improved {
+            break;
+        }
+    }
+    j
+}
+
+#[test]
+fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/two-layer.json");
+    let file = ModelFile::load(&path).unwrap();
+    let settings = MpcSettings::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(2024);
+    let mut worst: f64 = 0.0;
+    for problem in 0..20 {
+        let level = 0.13 + 0.2 * rng.random::<f64>();
+        let past_u: Vec<f64> = (0..20)
+            .map(|_| {
+                if rng.random::<f64>() < 0.2 {
+                    5e-6 * rng.random::<f64>()
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let past_y: Vec<f64> = (0..20)
+            .map(|i| level + 0.002 * (i as f64 - 10.0) * (rng.random::<f64>() - 0.5))
+            .collect();
+        let mut model = SurrogateModel {
+            predictor: file.predictor(),
+            past_u,
+            past_y,
+            bias: 0.01 * (2.0 * rng.random::<f64>() - 1.0),
+        };
+        let mut mpc = ZoneMpc::new(settings);
+        let sol = mpc.solve(&mut model);
+        assert!(
+            !matches!(sol.status, SolveStatus::Fallback(_)),
+            "{:?}",
+            sol.status
+        );
+        let ubar: Vec<f64> = sol.plan.iter().map(|u| u / settings.u_max).collect();
+        let j_sqp = cost(&settings, &mut model, &ubar);
+        assert!((j_sqp - sol.objective).abs() <= 1e-9 * (1.0 + j_sqp));
+        let starts = [
+            vec![0.0; 20],
+            vec![0.5; 20],
+            (0..20).map(|_| rng.random::<f64>()).collect(),
+        ];
+        let j_slow = starts
+            .into_iter()
+            .map(|s| slow_optimum(&settings, &mut model, s))
+            .fold(f64::INFINITY, f64::min);
+        let excess = (j_sqp - j_slow) / j_slow.max(1e-9);
+        worst = worst.max(excess);
+        assert!(
+            j_sqp <= j_slow * 1.001 + 1e-9,
+            "problem {problem}: SQP {j_sqp} vs slow {j_slow}"
+        );
+    }
+    eprintln!("largest relative excess of the SQP objective: {worst:e}");
+}
+
+struct Broken;
+
+impl PredictionModel for Broken {
+    fn predict(&mut self, _: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        out.fill(f64::NAN);
+        Err(ModelError("non-finite prediction at step 0".into()))
+    }
+    fn predict_with_jacobian(
+        &mut self,
+        p: &[f64],
+        out: &mut [f64],
+        _: &mut [f64],
+    ) -> Result<(), ModelError> {
+        self.predict(p, out)
+    }
+}
+
+#[test]
+fn a_model_returning_nan_gives_a_flagged_safe_plan() {
+    let settings = MpcSettings::default();
+    let mut mpc = ZoneMpc::new(settings);
+    // first a good solve, so that there is a plan to fall back on
+    let mut good = Linear {
+        a: (0..20).map(|k| 0.16 - 0.004 * k as f64).collect(),
+        b: 600.0,
+        rho: 0.85,
+    };
+    let first = mpc.solve(&mut good);
+    let sol = mpc.solve(&mut Broken);
+    assert!(
+        matches!(&sol.status, SolveStatus::Fallback(r) if r.contains("non-finite")),
+        "{:?}",
+        sol.status
+    );
+    assert!(
+        sol.plan
+            .iter()
+            .all(|u| u.is_finite() && (0.0..=settings.u_max).contains(u))
+    );
+    // the previous plan shifted by one step
+    assert_eq!(sol.plan[..19], first.plan[1..]);
+    assert_eq!(sol.plan[19], first.plan[19]);
+    // without any previous plan: no irrigation
+    let sol = ZoneMpc::new(settings).solve(&mut Broken);
+    assert!(matches!(sol.status, SolveStatus::Fallback(_)));
+    assert!(sol.plan.iter().all(|&u| u == 0.0));
+}
