@@ -1,35 +1,57 @@
-//! One zone-MPC solve (SQP, multi-start) with the shipped two-layer surrogate,
-//! from a dry and from an in-zone state.
+//! One zone-MPC solve with each prediction model: the shipped two-layer
+//! network and single LSTM (cold controller: multi-start), from a dry and an
+//! in-zone window, and the Richards model from a field state.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use rootzone::control::{MpcSettings, SurrogateModel, ZoneMpc};
+use rootzone::control::{MpcSettings, RichardsModel, SurrogateModel, ZoneMpc};
+use rootzone::soil::{Field, FieldSettings};
 use rootzone::surrogate::ModelFile;
+use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
 
 fn solve(c: &mut Criterion) {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/two-layer.json");
-    let file = ModelFile::load(&path).expect("the shipped model loads");
-    for (name, level) in [("dry-0.15", 0.15), ("in-zone-0.20", 0.20)] {
-        let mut model = SurrogateModel {
-            predictor: file.predictor(),
-            past_u: (0..20)
-                .map(|i| if i % 6 == 0 { 3e-6 } else { 0.0 })
-                .collect(),
-            past_y: vec![level; 20],
-            bias: 0.0,
-        };
-        c.bench_function(&format!("zone-mpc-two-layer/{name}"), |b| {
-            b.iter(|| {
-                // a cold controller every time: no warm start
-                let mut mpc = ZoneMpc::new(MpcSettings::default());
-                mpc.solve(&mut model).plan[0]
-            })
-        });
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    for (file, name) in [
+        ("two-layer.json", "two-layer"),
+        ("single-lstm.json", "single-lstm"),
+    ] {
+        let file = ModelFile::load(&dir.join(file)).expect("the shipped model loads");
+        for (case, level) in [("dry-0.15", 0.15), ("in-zone-0.20", 0.20)] {
+            let mut model = SurrogateModel::new(
+                file.predictor(),
+                (0..20)
+                    .map(|i| if i % 6 == 0 { 3e-6 } else { 0.0 })
+                    .collect(),
+                vec![level; 20],
+            );
+            c.bench_function(&format!("zone-mpc-{name}/{case}"), |b| {
+                b.iter(|| {
+                    // a cold controller every time: no warm start
+                    let mut mpc = ZoneMpc::new(MpcSettings::default());
+                    mpc.solve(&mut model).plan[0]
+                })
+            });
+        }
     }
+    // the Richards model after two dry days (θ ≈ 0.20), dry forecast
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").expect("embedded weather");
+    let mut field = Field::new(FieldSettings::default()).expect("default field");
+    for step in &weather.steps()[..24] {
+        field
+            .step(step.forcing(0.0, 7200.0))
+            .expect("the field steps");
+    }
+    let mut model = RichardsModel::new(&field, &weather.steps()[24..44]);
+    c.bench_function("zone-mpc-richards/after-two-dry-days", |b| {
+        b.iter(|| {
+            let mut mpc = ZoneMpc::new(MpcSettings::default());
+            mpc.solve(&mut model).plan[0]
+        })
+    });
 }
 
 criterion_group! {
     name = benches;
-    config = Criterion::default().sample_size(20);
+    config = Criterion::default().sample_size(10);
     targets = solve
 }
 criterion_main!(benches);

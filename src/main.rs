@@ -69,7 +69,7 @@ enum Command {
     },
     /// Reproduce one of the paper's experiments (tables as Markdown and CSV, figures as SVG).
     Experiment {
-        /// e1, e2 or e3.
+        /// e1 … e7, or all (E1–E7 and one report).
         id: String,
         /// Folder of the trained model files.
         #[arg(long, default_value = "models")]
@@ -77,7 +77,8 @@ enum Command {
         /// Folder for the tables and figures.
         #[arg(long, default_value = "reports")]
         out: PathBuf,
-        /// Seed of the fresh validation data.
+        /// Seed of the fresh validation data (E1–E3) and of the field's
+        /// noise and the forecast error (E4–E7).
         #[arg(long, default_value_t = 7)]
         seed: u64,
         /// Folder of the generated-data cache.

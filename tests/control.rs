@@ -160,6 +160,42 @@ fn slow_optimum(settings: &MpcSettings, model: &mut dyn PredictionModel, start: 
     j
 }
 
+/// The SQP's objective against the best of the slow optimiser from three
+/// starts; returns the relative excess.
+fn excess_over_slow(
+    settings: &MpcSettings,
+    model: &mut SurrogateModel,
+    sol: &rootzone::control::Solution,
+    rng: &mut ChaCha8Rng,
+    label: &str,
+) -> f64 {
+    assert!(
+        !matches!(sol.status, SolveStatus::Fallback(_)),
+        "{label}: {:?}",
+        sol.status
+    );
+    let ubar: Vec<f64> = sol.plan.iter().map(|u| u / settings.u_max).collect();
+    let j_sqp = cost(settings, model, &ubar);
+    assert!((j_sqp - sol.objective).abs() <= 1e-9 * (1.0 + j_sqp));
+    let starts = [
+        vec![0.0; 20],
+        vec![0.5; 20],
+        (0..20).map(|_| rng.random::<f64>()).collect(),
+    ];
+    let j_slow = starts
+        .into_iter()
+        .map(|s| slow_optimum(settings, model, s))
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        j_sqp <= j_slow * 1.001 + 1e-9,
+        "{label}: SQP {j_sqp} vs slow {j_slow} ({:?}, {} iterations, plan {:?})",
+        sol.status,
+        sol.iterations,
+        ubar.iter().map(|v| format!("{v:.2e}")).collect::<Vec<_>>()
+    );
+    (j_sqp - j_slow) / j_slow.max(1e-9)
+}
+
 #[test]
 fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/two-layer.json");
@@ -167,7 +203,9 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
     let settings = MpcSettings::default();
     let mut rng = ChaCha8Rng::seed_from_u64(2024);
     let mut worst: f64 = 0.0;
-    for problem in 0..20 {
+    // ten windows, each solved cold (multi-start) and then, one step later,
+    // warm-started from the shifted plan as in the closed loop: 20 problems
+    for problem in 0..10 {
         let level = 0.13 + 0.2 * rng.random::<f64>();
         let past_u: Vec<f64> = (0..20)
             .map(|_| {
@@ -181,37 +219,24 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
         let past_y: Vec<f64> = (0..20)
             .map(|i| level + 0.002 * (i as f64 - 10.0) * (rng.random::<f64>() - 0.5))
             .collect();
-        let mut model = SurrogateModel {
-            predictor: file.predictor(),
-            past_u,
-            past_y,
-            bias: 0.01 * (2.0 * rng.random::<f64>() - 1.0),
-        };
+        let mut model = SurrogateModel::new(file.predictor(), past_u, past_y);
+        model.bias = 0.01 * (2.0 * rng.random::<f64>() - 1.0);
         let mut mpc = ZoneMpc::new(settings);
-        let sol = mpc.solve(&mut model);
-        assert!(
-            !matches!(sol.status, SolveStatus::Fallback(_)),
-            "{:?}",
-            sol.status
+        let cold = mpc.solve(&mut model);
+        let label = format!("problem {problem} (cold)");
+        worst = worst.max(excess_over_slow(
+            &settings, &mut model, &cold, &mut rng, &label,
+        ));
+        // the first move applied, a measurement 0.003 off the prediction
+        model.push(
+            cold.plan[0],
+            cold.predicted[0] + 0.003 * (2.0 * rng.random::<f64>() - 1.0),
         );
-        let ubar: Vec<f64> = sol.plan.iter().map(|u| u / settings.u_max).collect();
-        let j_sqp = cost(&settings, &mut model, &ubar);
-        assert!((j_sqp - sol.objective).abs() <= 1e-9 * (1.0 + j_sqp));
-        let starts = [
-            vec![0.0; 20],
-            vec![0.5; 20],
-            (0..20).map(|_| rng.random::<f64>()).collect(),
-        ];
-        let j_slow = starts
-            .into_iter()
-            .map(|s| slow_optimum(&settings, &mut model, s))
-            .fold(f64::INFINITY, f64::min);
-        let excess = (j_sqp - j_slow) / j_slow.max(1e-9);
-        worst = worst.max(excess);
-        assert!(
-            j_sqp <= j_slow * 1.001 + 1e-9,
-            "problem {problem}: SQP {j_sqp} vs slow {j_slow}"
-        );
+        let warm = mpc.solve(&mut model);
+        let label = format!("problem {problem} (warm)");
+        worst = worst.max(excess_over_slow(
+            &settings, &mut model, &warm, &mut rng, &label,
+        ));
     }
     eprintln!("largest relative excess of the SQP objective: {worst:e}");
 }
@@ -262,4 +287,75 @@ fn a_model_returning_nan_gives_a_flagged_safe_plan() {
     let sol = ZoneMpc::new(settings).solve(&mut Broken);
     assert!(matches!(sol.status, SolveStatus::Fallback(_)));
     assert!(sol.plan.iter().all(|&u| u == 0.0));
+}
+
+#[test]
+fn richards_jacobian_from_integrator_tangents_matches_finite_differences() {
+    use rootzone::control::RichardsModel;
+    use rootzone::soil::{Field, FieldSettings};
+    use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
+    // Tight tolerances: the tangents differentiate the discrete solution with
+    // its step sizes fixed, finite differences also see the step sizes move
+    // with the input (an effect of the size of the local error).
+    let settings = FieldSettings {
+        tolerances: rootzone::soil::Tolerances {
+            relative: 1e-8,
+            absolute: 1e-10,
+        },
+        ..FieldSettings::default()
+    };
+    let mut field = Field::new(settings).unwrap();
+    for (k, step) in weather.steps()[..6].iter().enumerate() {
+        let u = if k == 2 { 4e-6 } else { 0.0 };
+        field.step(step.forcing(u, 7200.0)).unwrap();
+    }
+    let n = 8;
+    let mut model = RichardsModel::new(&field, &weather.steps()[6..6 + n]);
+    let plan: Vec<f64> = (0..n)
+        .map(|k| [0.0, 2e-6, 5e-7, 0.0, 8e-6, 1e-6, 0.0, 3e-6][k])
+        .collect();
+    let mut y = vec![0.0; n];
+    let mut jac = vec![0.0; n * n];
+    model
+        .predict_with_jacobian(&plan, &mut y, &mut jac)
+        .unwrap();
+    let mut plain = vec![0.0; n];
+    model.predict(&plan, &mut plain).unwrap();
+    assert_eq!(y, plain, "tangents must not change the prediction");
+    let scale = jac.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(scale > 1e3, "irrigation must wet the sensor: {scale}");
+    // central differences; second-order one-sided ones at the bound u = 0
+    let delta = 2e-8;
+    let (mut a, mut b) = (vec![0.0; n], vec![0.0; n]);
+    let mut worst: f64 = 0.0;
+    for j in 0..n {
+        let mut p = plan.clone();
+        let one_sided = plan[j] < delta;
+        p[j] = plan[j] + delta;
+        model.predict(&p, &mut a).unwrap();
+        p[j] = if one_sided {
+            plan[j] + 2.0 * delta
+        } else {
+            plan[j] - delta
+        };
+        model.predict(&p, &mut b).unwrap();
+        for k in 0..n {
+            let fd = if one_sided {
+                (-3.0 * y[k] + 4.0 * a[k] - b[k]) / (2.0 * delta)
+            } else {
+                (a[k] - b[k]) / (2.0 * delta)
+            };
+            let exact = jac[k * n + j];
+            worst = worst.max((fd - exact).abs() / scale);
+            assert!(
+                (fd - exact).abs() <= 1e-3 * scale,
+                "dy_{k}/du_{j}: tangent {exact:e}, finite difference {fd:e}"
+            );
+            if j > k {
+                assert_eq!(exact, 0.0, "no input affects earlier outputs");
+            }
+        }
+    }
+    eprintln!("largest difference / largest entry: {worst:e}");
 }

@@ -1,10 +1,15 @@
-//! The zone MPC of MODEL.md §4: the zone, the prediction-model interface and
-//! the SQP solver (QP subproblems with clarabel).
+//! The zone MPC of MODEL.md §4: the zone, the prediction models, the SQP
+//! solver (QP subproblems with clarabel), the running controller and the
+//! closed loop with a simulated field.
 
+pub mod closed_loop;
+pub mod controller;
 pub mod model;
 pub mod mpc;
 pub mod zone;
 
-pub use model::{ModelError, PredictionModel, SurrogateModel};
+pub use closed_loop::{ClosedLoopRun, ClosedLoopSettings, StepRecord, run_closed_loop};
+pub use controller::{Controller, Decision};
+pub use model::{ModelError, PredictionModel, RichardsModel, SurrogateModel};
 pub use mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc, objective};
 pub use zone::ZoneSettings;

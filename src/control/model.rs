@@ -1,7 +1,9 @@
 //! Prediction models behind one interface.
 
+use crate::soil::{ColumnState, Field, Forcing, Integrator};
 use crate::surrogate::Predictor;
 use crate::surrogate::evaluate::WINDOW;
+use crate::weather::WeatherStep;
 
 /// A prediction failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -23,26 +25,67 @@ pub trait PredictionModel: Send {
 
 /// A surrogate ([`Predictor`]) with its window of applied inputs and measured
 /// outputs and an additive bias correction.
+///
+/// The surrogates' input is the water supplied at the surface: the weather
+/// enters as the precipitation rate added to the irrigation, in the window
+/// (observed rain) and over the horizon (`rain`, the forecast). ET0 enters
+/// only through the training weather (MODEL.md's dry scenario), on which the
+/// surrogates learnt the daily uptake cycle.
 #[derive(Debug, Clone)]
 pub struct SurrogateModel {
     pub predictor: Predictor,
-    /// u[t − 20..t] (m/s), oldest first.
+    /// Supply u + P over the last 20 steps (m/s), oldest first.
     pub past_u: Vec<f64>,
     /// Measured y[t − 20..t].
     pub past_y: Vec<f64>,
     pub bias: f64,
+    /// Forecast precipitation rate of each horizon step [m/s] (missing
+    /// entries count as no rain).
+    pub rain: Vec<f64>,
+    /// The plan plus the rain, reused between calls.
+    supply: Vec<f64>,
 }
 
 impl SurrogateModel {
     /// A model whose window is padded with (u = 0, y = `first`), as before 20
     /// samples exist (MODEL.md §4).
     pub fn padded(predictor: Predictor, first: f64) -> SurrogateModel {
+        SurrogateModel::new(predictor, vec![0.0; WINDOW], vec![first; WINDOW])
+    }
+
+    /// A model with the given window (supply rates, measured outputs), no
+    /// bias and no rain forecast.
+    pub fn new(predictor: Predictor, past_u: Vec<f64>, past_y: Vec<f64>) -> SurrogateModel {
         SurrogateModel {
             predictor,
-            past_u: vec![0.0; WINDOW],
-            past_y: vec![first; WINDOW],
+            past_u,
+            past_y,
             bias: 0.0,
+            rain: Vec::new(),
+            supply: Vec::new(),
         }
+    }
+
+    /// The supply of a plan: irrigation plus forecast rain.
+    fn supply(&mut self, plan: &[f64]) -> Vec<f64> {
+        let mut supply = std::mem::take(&mut self.supply);
+        supply.clear();
+        supply.extend(
+            plan.iter()
+                .enumerate()
+                .map(|(k, u)| u + self.rain.get(k).copied().unwrap_or(0.0)),
+        );
+        supply
+    }
+
+    /// The prediction without the bias of the supply `u` over the next step.
+    pub fn one_step(&mut self, u: f64) -> Result<f64, ModelError> {
+        let mut out = [0.0];
+        self.predictor
+            .predict(&self.past_u, &self.past_y, &[u], 0.0, &mut out)
+            .map_err(|e| ModelError(e.to_string()))?;
+        finite(&out)?;
+        Ok(out[0])
     }
 
     /// Shifts the window by one sample: `u` applied over the last step, `y`
@@ -64,9 +107,13 @@ fn finite(out: &[f64]) -> Result<(), ModelError> {
 
 impl PredictionModel for SurrogateModel {
     fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
-        self.predictor
-            .predict(&self.past_u, &self.past_y, plan, self.bias, out)
-            .map_err(|e| ModelError(e.to_string()))?;
+        let supply = self.supply(plan);
+        let result = self
+            .predictor
+            .predict(&self.past_u, &self.past_y, &supply, self.bias, out)
+            .map_err(|e| ModelError(e.to_string()));
+        self.supply = supply;
+        result?;
         finite(out)
     }
 
@@ -76,10 +123,121 @@ impl PredictionModel for SurrogateModel {
         out: &mut [f64],
         jac: &mut [f64],
     ) -> Result<(), ModelError> {
-        self.predictor
-            .predict_with_jacobian(&self.past_u, &self.past_y, plan, self.bias, out, jac)
-            .map_err(|e| ModelError(e.to_string()))?;
+        // d(supply)/du = 1: the Jacobian in the supply is the one in u
+        let supply = self.supply(plan);
+        let result = self
+            .predictor
+            .predict_with_jacobian(&self.past_u, &self.past_y, &supply, self.bias, out, jac)
+            .map_err(|e| ModelError(e.to_string()));
+        self.supply = supply;
+        result?;
         finite(out)?;
         finite(jac)
+    }
+}
+
+/// The Richards model of MODEL.md §1 as a prediction model: the column's
+/// integrator from the full state (heads) under the weather forecast. Its
+/// Jacobian comes from tangents carried through the integrator's implicit
+/// stages ([`Integrator::advance_with_tangents`]), not finite differences.
+#[derive(Debug, Clone)]
+pub struct RichardsModel {
+    integrator: Integrator,
+    state: ColumnState,
+    /// ET0 and P of every horizon step (irrigation 0) [m/s].
+    forecast: Vec<Forcing>,
+    sampling_time: f64,
+}
+
+impl RichardsModel {
+    /// The model at `field`'s current (true) state, with `forecast` (one step
+    /// per horizon step; the last repeats if it is short).
+    pub fn new(field: &Field, forecast: &[WeatherStep]) -> RichardsModel {
+        let sampling_time = field.settings().sampling_time;
+        RichardsModel {
+            integrator: field.integrator().clone(),
+            state: field.state().clone(),
+            forecast: forecast
+                .iter()
+                .map(|w| w.forcing(0.0, sampling_time))
+                .collect(),
+            sampling_time,
+        }
+    }
+
+    fn forcing(&self, k: usize, irrigation: f64) -> Result<Forcing, ModelError> {
+        let base = self
+            .forecast
+            .get(k)
+            .or(self.forecast.last())
+            .ok_or_else(|| ModelError("the Richards model has no forecast".into()))?;
+        Ok(Forcing {
+            irrigation,
+            ..*base
+        })
+    }
+
+    fn run(
+        &self,
+        plan: &[f64],
+        out: &mut [f64],
+        mut jac: Option<&mut [f64]>,
+    ) -> Result<(), ModelError> {
+        let n = plan.len();
+        let mut integrator = self.integrator.clone();
+        let mut state = self.state.clone();
+        let soil = *integrator.column().soil();
+        let sensor = integrator.column().sensor_cell();
+        let cells = integrator.column().cells();
+        let mut tangents = vec![vec![0.0; cells]; if jac.is_some() { n } else { 0 }];
+        for (k, &u) in plan.iter().enumerate() {
+            let forcing = self.forcing(k, u.max(0.0))?;
+            let t = k as f64 * self.sampling_time;
+            let result = if jac.is_some() {
+                integrator.advance_with_tangents(
+                    &mut state,
+                    t,
+                    self.sampling_time,
+                    forcing,
+                    &mut tangents[..=k],
+                    Some(k),
+                )
+            } else {
+                integrator.advance(&mut state, t, self.sampling_time, forcing)
+            };
+            result.map_err(|e| ModelError(format!("Richards model: {e}")))?;
+            let h = state.heads[sensor];
+            let hydraulic = soil.state(h);
+            out[k] = hydraulic.water_content;
+            if let Some(jac) = jac.as_deref_mut() {
+                for j in 0..n {
+                    jac[k * n + j] = if j <= k {
+                        hydraulic.capacity * tangents[j][sensor]
+                    } else {
+                        0.0
+                    };
+                }
+            }
+        }
+        finite(out)?;
+        if let Some(jac) = jac {
+            finite(jac)?;
+        }
+        Ok(())
+    }
+}
+
+impl PredictionModel for RichardsModel {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        self.run(plan, out, None)
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        self.run(plan, out, Some(jac))
     }
 }

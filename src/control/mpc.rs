@@ -15,13 +15,15 @@
 //! s.t. max(0, ū⁰ − Δ) ≤ ū ≤ min(1, ū⁰ + Δ),  Se(low_k) ≤ y_z,k ≤ Se(up_k)
 //! ```
 //!
-//! (minimising over the slack y_z gives back dist², so the QP's value at ū⁰
-//! is J(ū⁰) exactly). The trust region Δ globalises the iteration: a step is
-//! accepted when the true objective falls by at least a tenth of what the QP
-//! predicted; Δ grows after good steps and shrinks after poor ones. The
-//! iteration stops when a step changes no input by more than `step_tolerance`
-//! or the predicted decrease is negligible (converged), at the iteration cap,
-//! or at the time budget, and always returns the best plan evaluated.
+//! (minimising over the slack y_z gives back dist², so the QP's value is the
+//! objective of the linearised model). The trust region Δ globalises the
+//! iteration: a step is accepted when the true objective falls by at least a
+//! tenth of the decrease the linearised objective predicts (evaluated exactly
+//! at the QP's plan, not taken from the QP solver, whose tolerance would
+//! swamp small steps); Δ grows after good steps and shrinks after poor ones.
+//! The iteration stops when a step changes no input by more than
+//! `step_tolerance` or the predicted decrease is negligible (converged), at
+//! the iteration cap, or at the time budget, and always returns the best plan evaluated.
 
 use std::time::{Duration, Instant};
 
@@ -48,7 +50,16 @@ pub struct MpcSettings {
     pub max_iterations: usize,
     /// Largest change of any ū_k below which the iteration has converged.
     pub step_tolerance: f64,
+    /// Relative decrease of J, predicted by the linearisation, below which
+    /// the iteration has converged.
+    pub objective_tolerance: f64,
     pub time_budget: Duration,
+    /// The rate [m/s] below which the trust region turns from logarithmic to
+    /// linear (see [`TrustMetric`]).
+    pub trust_region_knee: f64,
+    /// SQP runs of a cold solve: the start and the `starts − 1` most
+    /// promising constant plans (see [`ZoneMpc::solve`]).
+    pub starts: usize,
 }
 
 impl Default for MpcSettings {
@@ -64,7 +75,10 @@ impl Default for MpcSettings {
             theta_s: soil.saturated_water_content,
             max_iterations: 50,
             step_tolerance: 1e-6,
+            objective_tolerance: 1e-6,
             time_budget: Duration::from_secs(1),
+            starts: 2,
+            trust_region_knee: 1.0,
         }
     }
 }
@@ -110,18 +124,93 @@ pub fn objective(settings: &MpcSettings, y: &[f64], ubar: &[f64]) -> f64 {
     j
 }
 
+/// The metric of the trust region: t(ū) = ln(1 + ū/κ)/ln(1 + 1/κ) ∈ [0, 1],
+/// κ = knee/u_max. Irrigation acts on the soil (and on the surrogates'
+/// logarithmic input) over orders of magnitude: a linearisation at 1e-8 m/s
+/// is good over a range of that size, one at 1e-6 m/s over a hundred times
+/// more. A box of radius Δ in t is still a box in ū, so the QP keeps its form.
+#[derive(Debug, Clone, Copy)]
+struct TrustMetric {
+    knee: f64,
+    span: f64,
+}
+
+impl TrustMetric {
+    fn new(knee: f64) -> TrustMetric {
+        let knee = if knee > 0.0 && knee.is_finite() {
+            knee
+        } else {
+            1e-3
+        };
+        TrustMetric {
+            knee,
+            span: (1.0 / knee).ln_1p(),
+        }
+    }
+
+    fn t(&self, ubar: f64) -> f64 {
+        (ubar.max(0.0) / self.knee).ln_1p() / self.span
+    }
+
+    fn inverse(&self, t: f64) -> f64 {
+        self.knee * (t * self.span).exp_m1()
+    }
+
+    /// The ū within `radius` of `center` in t, inside [0, 1].
+    fn interval(&self, center: f64, radius: f64) -> (f64, f64) {
+        let t = self.t(center);
+        (
+            self.inverse((t - radius).max(0.0)).clamp(0.0, 1.0),
+            self.inverse((t + radius).min(1.0)).clamp(0.0, 1.0),
+        )
+    }
+
+    /// The largest distance in t between two plans.
+    fn distance(&self, a: &[f64], b: &[f64]) -> f64 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (self.t(*x) - self.t(*y)).abs())
+            .fold(0.0, f64::max)
+    }
+}
+
 /// The zone MPC: settings and the plan of the last solve (the warm start).
 #[derive(Debug, Clone)]
 pub struct ZoneMpc {
     pub settings: MpcSettings,
     previous: Option<Vec<f64>>,
+    qp: QpCache,
+}
+
+/// The QP solver of the last subproblem: its sparsity pattern is the same
+/// for every linearisation of a horizon, so later subproblems only update
+/// the data (no new symbolic factorisation).
+#[derive(Default)]
+struct QpCache {
+    solver: Option<Box<DefaultSolver<f64>>>,
+    size: usize,
+    causal: bool,
+}
+
+impl Clone for QpCache {
+    /// A clone starts without a solver (it builds its own on first use).
+    fn clone(&self) -> Self {
+        QpCache::default()
+    }
+}
+
+impl std::fmt::Debug for QpCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("QpCache")
+            .field("size", &self.size)
+            .field("built", &self.solver.is_some())
+            .finish()
+    }
 }
 
 struct Qp {
     /// ū of the QP's solution.
     ubar: Vec<f64>,
-    /// The QP objective at that solution (constant included).
-    value: f64,
 }
 
 impl ZoneMpc {
@@ -129,6 +218,7 @@ impl ZoneMpc {
         ZoneMpc {
             settings,
             previous: None,
+            qp: QpCache::default(),
         }
     }
 
@@ -157,25 +247,47 @@ impl ZoneMpc {
 
     /// Solves the zone MPC for the state `model` holds.
     ///
-    /// The problem is not convex (the model is not linear), so the SQP runs
-    /// from the warm start and, while the time budget lasts, also from no
-    /// irrigation and from 20 %, 50 % and 100 % of the largest rate; the best
-    /// plan wins.
+    /// The problem is not convex (the model is not linear), so the SQP may
+    /// end in a local minimum. A controller that solved before starts from
+    /// its previous plan shifted by one step, and when that run converges its
+    /// plan is taken: the previous optimum lies in the basin of the new one.
+    /// Otherwise (the first solve, or a warm run that did not converge) the
+    /// SQP also runs from the most promising other starts: the constant
+    /// plans at 0, 20 %, 50 % and 100 % of the largest rate, ranked by their
+    /// objective (one prediction each), up to `starts` runs in all while the
+    /// time budget lasts; the best plan wins.
     pub fn solve(&mut self, model: &mut dyn PredictionModel) -> Solution {
         let start = Instant::now();
-        let n = self.settings.horizon;
+        let s = self.settings;
+        let n = s.horizon;
         let warm = self.warm_start();
+        let warm_started = self.previous.is_some();
         let mut best = self.solve_from(model, warm.clone(), start);
         if matches!(best.status, SolveStatus::Fallback(_)) {
             return best;
         }
+        if warm_started && best.status == SolveStatus::Converged {
+            // the shifted previous optimum lies in the basin of the new one
+            best.solve_time = start.elapsed();
+            self.previous = Some(best.plan.clone());
+            return best;
+        }
+        let mut candidates: Vec<(f64, Vec<f64>)> = Vec::new();
+        let mut y = vec![0.0; n];
         for level in [0.0, 0.2, 0.5, 1.0] {
-            if start.elapsed() > self.settings.time_budget {
-                break;
-            }
             let other = vec![level; n];
             if other == warm {
                 continue;
+            }
+            let plan: Vec<f64> = other.iter().map(|v| v * s.u_max).collect();
+            if model.predict(&plan, &mut y).is_ok() {
+                candidates.push((objective(&s, &y, &other), other));
+            }
+        }
+        candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for (_, other) in candidates.into_iter().take(s.starts.saturating_sub(1)) {
+            if start.elapsed() > s.time_budget {
+                break;
             }
             let sol = self.solve_from(model, other, start);
             if !matches!(sol.status, SolveStatus::Fallback(_)) && sol.objective < best.objective {
@@ -223,6 +335,7 @@ impl ZoneMpc {
             return fallback(self, &ubar, e.to_string(), 0);
         }
         let mut j = objective(&s, &y, &ubar);
+        let metric = TrustMetric::new(s.trust_region_knee / s.u_max);
         let mut radius = 0.5;
         let mut status = SolveStatus::IterationCap;
         let mut iterations = 0;
@@ -233,7 +346,7 @@ impl ZoneMpc {
                 break;
             }
             iterations += 1;
-            let qp = match self.subproblem(&ubar, &y, &jac, radius) {
+            let qp = match self.subproblem(&ubar, &y, &jac, &metric, radius, j) {
                 Ok(qp) => qp,
                 Err(reason) => {
                     if iterations == 1 {
@@ -243,14 +356,11 @@ impl ZoneMpc {
                     break;
                 }
             };
-            let predicted = j - qp.value;
-            let step = qp
-                .ubar
-                .iter()
-                .zip(&ubar)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max);
-            if step < s.step_tolerance || predicted <= 1e-10 * (1.0 + j) {
+            // the decrease the linearisation predicts, evaluated exactly at
+            // the QP's plan (the QP's own objective carries its tolerance)
+            let predicted = j - self.linearised_objective(&ubar, &y, &jac, &qp.ubar);
+            let step = metric.distance(&qp.ubar, &ubar);
+            if step < s.step_tolerance || predicted <= s.objective_tolerance * j + 1e-12 {
                 status = SolveStatus::Converged;
                 break;
             }
@@ -294,9 +404,32 @@ impl ZoneMpc {
         }
     }
 
+    /// J of the model linearised at ū⁰ (predictions `y`, Jacobian `jac`),
+    /// evaluated at `ubar`.
+    fn linearised_objective(&self, u0: &[f64], y: &[f64], jac: &[f64], ubar: &[f64]) -> f64 {
+        let s = &self.settings;
+        let n = u0.len();
+        let linear: Vec<f64> = (0..n)
+            .map(|k| {
+                y[k] + (0..n)
+                    .map(|j| jac[k * n + j] * s.u_max * (ubar[j] - u0[j]))
+                    .sum::<f64>()
+            })
+            .collect();
+        objective(s, &linear, ubar)
+    }
+
     /// The QP of one SQP iteration (module docs) at ū⁰ with predictions `y`
     /// and Jacobian `jac` (raw units), in the trust region `radius`.
-    fn subproblem(&self, u0: &[f64], y: &[f64], jac: &[f64], radius: f64) -> Result<Qp, String> {
+    fn subproblem(
+        &mut self,
+        u0: &[f64],
+        y: &[f64],
+        jac: &[f64],
+        metric: &TrustMetric,
+        radius: f64,
+        current: f64,
+    ) -> Result<Qp, String> {
         let s = &self.settings;
         let n = u0.len();
         let span = s.theta_s - s.theta_r;
@@ -309,51 +442,62 @@ impl ZoneMpc {
         // ½xᵀPx + qᵀx with x = (ū, y_z):
         // P = 2[Q·GᵀG + R·I, −Q·Gᵀ; −Q·G, Q·I], q = 2[Q·Gᵀc; −Q·c], + Q·‖c‖²
         let m = 2 * n;
+        // a large objective is divided by J, so that the solver's absolute
+        // tolerances act as relative ones there; small ones are solved to
+        // the solver's (tightened) absolute tolerances as they are
+        let w = 1.0 / current.max(1.0);
+        let (q_w, r_w) = (s.q * w, s.r * w);
         let mut dense = vec![0.0; m * m];
         for a in 0..n {
             for b in a..n {
                 let gg: f64 = (0..n).map(|k| g[k * n + a] * g[k * n + b]).sum();
-                dense[a * m + b] = 2.0 * s.q * gg + if a == b { 2.0 * s.r } else { 0.0 };
+                dense[a * m + b] = 2.0 * q_w * gg + if a == b { 2.0 * r_w } else { 0.0 };
             }
             for k in 0..n {
                 // row a (ū_a), column n + k (y_z,k): −2Q·G[k][a]
-                dense[a * m + n + k] = -2.0 * s.q * g[k * n + a];
+                dense[a * m + n + k] = -2.0 * q_w * g[k * n + a];
             }
         }
         for k in 0..n {
-            dense[(n + k) * m + n + k] = 2.0 * s.q;
+            dense[(n + k) * m + n + k] = 2.0 * q_w;
         }
+        // every entry of the upper triangle is kept (zeros included), so the
+        // pattern is the same in every iteration and the solver can be reused
         let mut colptr = vec![0usize];
         let (mut rowval, mut nzval) = (Vec::new(), Vec::new());
+        // a causal model (ŷ_k independent of later inputs) leaves the coupling
+        // of y_z,k with ū_j, j > k, empty
+        let causal = (0..n).all(|k| (k + 1..n).all(|j| g[k * n + j] == 0.0));
         for col in 0..m {
-            for row in 0..=col {
-                let v = dense[row * m + col];
-                if v != 0.0 {
-                    rowval.push(row);
-                    nzval.push(v);
-                }
+            let rows = if col < n {
+                0..col + 1
+            } else if causal {
+                0..col - n + 1
+            } else {
+                0..n
+            };
+            for row in rows {
+                rowval.push(row);
+                nzval.push(dense[row * m + col]);
+            }
+            if col >= n {
+                rowval.push(col);
+                nzval.push(dense[col * m + col]);
             }
             colptr.push(rowval.len());
         }
-        let p = CscMatrix::new(m, m, colptr, rowval, nzval);
         let mut q = vec![0.0; m];
         for a in 0..n {
-            q[a] = 2.0 * s.q * (0..n).map(|k| g[k * n + a] * c[k]).sum::<f64>();
+            q[a] = 2.0 * q_w * (0..n).map(|k| g[k * n + a] * c[k]).sum::<f64>();
         }
         for k in 0..n {
-            q[n + k] = -2.0 * s.q * c[k];
+            q[n + k] = -2.0 * q_w * c[k];
         }
-        let constant = s.q * c.iter().map(|v| v * v).sum::<f64>();
         // A·x + s = b, s ≥ 0: for every variable, x ≤ upper and −x ≤ −lower
-        let mut colptr = vec![0usize];
-        let (mut rowval, mut nzval) = (Vec::new(), Vec::new());
         let mut b = vec![0.0; 2 * m];
         for col in 0..m {
-            rowval.extend([2 * col, 2 * col + 1]);
-            nzval.extend([1.0, -1.0]);
-            colptr.push(rowval.len());
             let (lo, hi) = if col < n {
-                ((u0[col] - radius).max(0.0), (u0[col] + radius).min(1.0))
+                metric.interval(u0[col], radius)
             } else {
                 let (low, up) = s.zone.bounds(col - n + 1, n);
                 (se(low), se(up))
@@ -361,28 +505,60 @@ impl ZoneMpc {
             b[2 * col] = hi;
             b[2 * col + 1] = -lo;
         }
-        let a = CscMatrix::new(2 * m, m, colptr, rowval, nzval);
-        let cones = [NonnegativeConeT(2 * m)];
-        let settings = DefaultSettingsBuilder::default()
-            .verbose(false)
-            .max_iter(100)
-            .build()
-            .map_err(|e| format!("QP settings: {e:?}"))?;
-        let mut solver = DefaultSolver::new(&p, &q, &a, &b, &cones, settings)
-            .map_err(|e| format!("QP setup: {e:?}"))?;
+        let reused = match self.qp.solver.as_mut() {
+            Some(solver) if self.qp.size == n && self.qp.causal == causal => solver
+                .update_P(&nzval)
+                .and_then(|()| solver.update_q(&q))
+                .and_then(|()| solver.update_b(&b))
+                .is_ok(),
+            _ => false,
+        };
+        if !reused {
+            let p = CscMatrix::new(m, m, colptr, rowval, nzval);
+            let mut colptr = vec![0usize];
+            let (mut rowval, mut values) = (Vec::new(), Vec::new());
+            for col in 0..m {
+                rowval.extend([2 * col, 2 * col + 1]);
+                values.extend([1.0, -1.0]);
+                colptr.push(rowval.len());
+            }
+            let a = CscMatrix::new(2 * m, m, colptr, rowval, values);
+            let cones = [NonnegativeConeT(2 * m)];
+            let settings = DefaultSettingsBuilder::default()
+                .verbose(false)
+                .max_iter(100)
+                .presolve_enable(false)
+                .iterative_refinement_enable(false)
+                .tol_gap_abs(1e-12)
+                .tol_gap_rel(1e-10)
+                .build()
+                .map_err(|e| format!("QP settings: {e:?}"))?;
+            let solver = DefaultSolver::new(&p, &q, &a, &b, &cones, settings)
+                .map_err(|e| format!("QP setup: {e:?}"))?;
+            self.qp = QpCache {
+                solver: Some(Box::new(solver)),
+                size: n,
+                causal,
+            };
+        }
+        let Some(solver) = self.qp.solver.as_mut() else {
+            return Err("QP solver missing".into());
+        };
         solver.solve();
         let sol = &solver.solution;
         match sol.status {
             SolverStatus::Solved | SolverStatus::AlmostSolved => {}
-            other => return Err(format!("QP not solved: {other:?}")),
+            other => {
+                // start afresh next time
+                self.qp = QpCache::default();
+                return Err(format!("QP not solved: {other:?}"));
+            }
         }
         if sol.x.iter().any(|v| !v.is_finite()) {
+            self.qp = QpCache::default();
             return Err("QP returned non-finite values".into());
         }
         let ubar: Vec<f64> = sol.x[..n].iter().map(|v| v.clamp(0.0, 1.0)).collect();
-        Ok(Qp {
-            ubar,
-            value: sol.obj_val + constant,
-        })
+        Ok(Qp { ubar })
     }
 }

@@ -51,12 +51,12 @@ pub const PERIODS: [usize; 4] = [1, 2, 5, 10];
 /// Steps of the prediction traces in the figures.
 const FIGURE_STEPS: usize = 300;
 
-fn load(options: &ExperimentOptions, file: &str) -> Result<ModelFile, ExperimentError> {
+pub(crate) fn load(options: &ExperimentOptions, file: &str) -> Result<ModelFile, ExperimentError> {
     Ok(ModelFile::load(&options.models.join(file))?)
 }
 
 /// The soil a model file was trained for.
-fn soil_of(model: &ModelFile, file: &Path) -> Result<Texture, ExperimentError> {
+pub(crate) fn soil_of(model: &ModelFile, file: &Path) -> Result<Texture, ExperimentError> {
     model
         .metadata
         .soil

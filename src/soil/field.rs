@@ -178,6 +178,12 @@ impl Field {
         self.steps
     }
 
+    /// The field's integrator (with its column), e.g. to predict from
+    /// [`Field::state`] without advancing the field.
+    pub fn integrator(&self) -> &Integrator {
+        &self.integrator
+    }
+
     pub fn integrator_statistics(&self) -> IntegratorStatistics {
         self.integrator.statistics()
     }
@@ -205,6 +211,14 @@ impl Field {
     pub fn water_content(&self) -> f64 {
         let h = self.pressure_heads()[self.column().sensor_cell()];
         self.settings.soil.water_content(h)
+    }
+
+    /// What the sensor reads now: the true water content with measurement
+    /// noise (a draw from the measurement stream).
+    pub fn measure(&mut self) -> f64 {
+        let m = self.settings.measurement_noise;
+        let v = m * (2.0 * self.measurement_rng.random::<f64>() - 1.0);
+        self.water_content() * (1.0 + v)
     }
 
     /// Water stored in the column, Σ (θ + Ss·h)·dz [m].
@@ -241,13 +255,12 @@ impl Field {
         self.steps += 1;
         self.apply_process_noise();
         let water_content = self.water_content();
-        let m = self.settings.measurement_noise;
-        let v = m * (2.0 * self.measurement_rng.random::<f64>() - 1.0);
+        let measured_water_content = self.measure();
         Ok(StepReport {
             step: self.steps - 1,
             time: self.time,
             water_content,
-            measured_water_content: water_content * (1.0 + v),
+            measured_water_content,
         })
     }
 

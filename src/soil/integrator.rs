@@ -158,6 +158,16 @@ struct Workspace {
     update: Vec<f64>,
     base: Vec<f64>,
     scratch: Vec<f64>,
+    /// Kept only while tangents are propagated: diag(C + Ss) at the start of
+    /// the step, and per stage the tridiagonal ∂F/∂H, diag(C + Ss) and
+    /// ∂F_0/∂(irrigation) (1/dz while the top face takes all the supply).
+    keep_jacobians: bool,
+    start_capacity: Vec<f64>,
+    stage_lower: [Vec<f64>; STAGES],
+    stage_diagonal: [Vec<f64>; STAGES],
+    stage_upper: [Vec<f64>; STAGES],
+    stage_capacity: [Vec<f64>; STAGES],
+    stage_supply_gain: [f64; STAGES],
 }
 
 impl Workspace {
@@ -173,7 +183,14 @@ impl Workspace {
             residual: z.clone(),
             update: z.clone(),
             base: z.clone(),
-            scratch: z,
+            scratch: z.clone(),
+            keep_jacobians: false,
+            start_capacity: z.clone(),
+            stage_lower: std::array::from_fn(|_| z.clone()),
+            stage_diagonal: std::array::from_fn(|_| z.clone()),
+            stage_upper: std::array::from_fn(|_| z.clone()),
+            stage_capacity: std::array::from_fn(|_| z.clone()),
+            stage_supply_gain: [0.0; STAGES],
         }
     }
 }
@@ -214,6 +231,33 @@ impl Integrator {
         duration: f64,
         forcing: Forcing,
     ) -> Result<(), IntegrationError> {
+        self.advance_with_tangents(state, time, duration, forcing, &mut [], None)
+    }
+
+    /// [`Integrator::advance`] that also carries tangents: `tangents[p]` holds
+    /// dH/dp_p (one entry per cell) at the start and at the end of the
+    /// interval, and `irrigation` names the parameter, if any, that is this
+    /// interval's irrigation rate (∂forcing.irrigation/∂p = 1).
+    ///
+    /// The tangents are the exact derivatives of the discrete solution with
+    /// the accepted step sizes held fixed: for every stage
+    ///
+    /// ```text
+    /// (diag(C + Ss) − γΔt·T_i)·S_i
+    ///     = diag(C + Ss)ⁿ·Sⁿ + Δt·Σ_{j<i} a_ij·(T_j·S_j + F_p,j) + γΔt·F_p,i
+    /// ```
+    ///
+    /// with T the tridiagonal ∂F/∂H, and Sⁿ⁺¹ = S_s (the method is stiffly
+    /// accurate).
+    pub fn advance_with_tangents(
+        &mut self,
+        state: &mut ColumnState,
+        time: f64,
+        duration: f64,
+        forcing: Forcing,
+        tangents: &mut [Vec<f64>],
+        irrigation: Option<usize>,
+    ) -> Result<(), IntegrationError> {
         let fail = |at: f64, message: String| IntegrationError {
             time: time + at,
             message,
@@ -226,6 +270,11 @@ impl Integrator {
         if state.heads.len() != n || state.heads.iter().any(|h| !h.is_finite()) {
             return Err(fail(0.0, "heads must be finite, one per cell".into()));
         }
+        if tangents.iter().any(|t| t.len() != n) || irrigation.is_some_and(|p| p >= tangents.len())
+        {
+            return Err(fail(0.0, "tangents must hold one entry per cell".into()));
+        }
+        self.work.keep_jacobians = !tangents.is_empty();
         let mut heads = state.heads.clone();
         let mut amounts = state.amounts;
         let mut t = 0.0;
@@ -247,6 +296,9 @@ impl Integrator {
             }
             match self.try_step(&heads, &forcing, this_dt) {
                 Step::Accepted { error } => {
+                    for (p, tangent) in tangents.iter_mut().enumerate() {
+                        self.propagate_tangent(tangent, this_dt, irrigation == Some(p));
+                    }
                     let w = &self.work;
                     heads.copy_from_slice(&w.trial);
                     for (k, amount) in amounts.iter_mut().enumerate() {
@@ -296,6 +348,11 @@ impl Integrator {
         for i in 0..n {
             self.work.storage[i] = soil.storage(heads[i]);
         }
+        if self.work.keep_jacobians {
+            for i in 0..n {
+                self.work.start_capacity[i] = soil.state(heads[i]).capacity + ss;
+            }
+        }
         self.work.trial.copy_from_slice(heads);
         for stage in 0..STAGES {
             {
@@ -332,6 +389,22 @@ impl Integrator {
             let w = &mut self.work;
             w.stage_rates[stage].copy_from_slice(&w.eval.storage);
             w.stage_amount_rates[stage] = w.eval.amounts;
+            if w.keep_jacobians {
+                w.stage_lower[stage].copy_from_slice(&w.eval.lower);
+                w.stage_diagonal[stage].copy_from_slice(&w.eval.diagonal);
+                w.stage_upper[stage].copy_from_slice(&w.eval.upper);
+                for i in 0..n {
+                    w.stage_capacity[stage][i] = w.eval.states[i].capacity + ss;
+                }
+                // the top face passes the whole supply unless it is capped
+                // (then its derivative is in ∂F/∂H, and the supply runs off)
+                w.stage_supply_gain[stage] =
+                    if w.eval.top_gradient == 0.0 && w.eval.amounts[super::column::RUNOFF] == 0.0 {
+                        1.0 / self.column.cell_thickness()
+                    } else {
+                        0.0
+                    };
+            }
         }
         // Embedded estimate: Δt·Σ (b_j − b̂_j)·F_j, scaled per cell.
         let w = &self.work;
@@ -355,6 +428,64 @@ impl Integrator {
                 error: if error.is_finite() { error } else { 1e6 },
             }
         }
+    }
+
+    /// Carries one tangent over the step just accepted (see
+    /// [`Integrator::advance_with_tangents`]); `irrigation` is whether the
+    /// tangent's parameter is the irrigation rate of this interval.
+    fn propagate_tangent(&mut self, tangent: &mut [f64], dt: f64, irrigation: bool) {
+        let n = self.column.cells();
+        let w = &mut self.work;
+        // dF_j = T_j·S_j + F_p,j of the stages so far, in `stage_dF`
+        let mut stage_df: [Vec<f64>; STAGES] = std::array::from_fn(|_| vec![0.0; n]);
+        let mut s = vec![0.0; n];
+        for stage in 0..STAGES {
+            for i in 0..n {
+                let mut rhs = w.start_capacity[i] * tangent[i];
+                for j in 0..stage {
+                    rhs += dt * A[stage][j] * stage_df[j][i];
+                }
+                w.known[i] = rhs;
+            }
+            let gain = if irrigation {
+                w.stage_supply_gain[stage]
+            } else {
+                0.0
+            };
+            w.known[0] += GAMMA * dt * gain;
+            let (lower, diagonal, upper, capacity) = (
+                &w.stage_lower[stage],
+                &w.stage_diagonal[stage],
+                &w.stage_upper[stage],
+                &w.stage_capacity[stage],
+            );
+            let gamma_dt = GAMMA * dt;
+            let ok = solve_tridiagonal(
+                |i| -gamma_dt * lower[i],
+                |i| capacity[i] - gamma_dt * diagonal[i],
+                |i| -gamma_dt * upper[i],
+                &w.known,
+                &mut s,
+                &mut w.scratch,
+            );
+            if !ok {
+                // the same matrix Newton just factorised: cannot be singular
+                s.fill(f64::NAN);
+            }
+            let df = &mut stage_df[stage];
+            for i in 0..n {
+                let mut v = diagonal[i] * s[i];
+                if i > 0 {
+                    v += lower[i] * s[i - 1];
+                }
+                if i + 1 < n {
+                    v += upper[i] * s[i + 1];
+                }
+                df[i] = v;
+            }
+            df[0] += gain;
+        }
+        tangent.copy_from_slice(&s);
     }
 
     /// Newton with a backtracking line search on max|R| for one stage:

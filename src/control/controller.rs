@@ -1,0 +1,148 @@
+//! A running controller: the zone MPC with one prediction model and the
+//! state that model needs between control steps (the surrogate's window and
+//! bias correction), one decision per sampling step.
+
+use crate::soil::Field;
+use crate::surrogate::Predictor;
+use crate::surrogate::correction::{CorrectionKind, CorrectionState};
+use crate::weather::{WeatherStep, mm_to_rate};
+
+use super::model::{PredictionModel, RichardsModel, SurrogateModel};
+use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
+
+/// The prediction model a controller uses.
+#[derive(Debug, Clone)]
+enum Model {
+    /// A surrogate with its window; the correction and the bias-free
+    /// one-step predictions it is fitted on.
+    Surrogate {
+        model: Box<SurrogateModel>,
+        correction: CorrectionState,
+    },
+    /// The Richards model from the full (true) state of a field.
+    Richards,
+}
+
+/// The zone MPC and the state of its prediction model.
+#[derive(Debug, Clone)]
+pub struct Controller {
+    mpc: ZoneMpc,
+    model: Model,
+    sampling_time: f64,
+    /// Steps observed since the start.
+    observed: usize,
+}
+
+/// The controller's decision for one step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decision {
+    /// The irrigation rate to apply over the next step [m/s], in [0, u_max].
+    pub setpoint: f64,
+    pub solution: Solution,
+}
+
+impl Controller {
+    /// A surrogate controller (single LSTM or two-layer network) with a
+    /// single-bias correction refitted every `bias_period` steps on the mean
+    /// of y_meas(t) − ŷ(t | t−1) over that many steps (MODEL.md §3), and the
+    /// first measurement `first` (the window is padded with it, MODEL.md §4).
+    pub fn surrogate(
+        settings: MpcSettings,
+        predictor: Predictor,
+        bias_period: usize,
+        first: f64,
+        sampling_time: f64,
+    ) -> Controller {
+        Controller {
+            mpc: ZoneMpc::new(settings),
+            model: Model::Surrogate {
+                model: Box::new(SurrogateModel::padded(predictor, first)),
+                correction: CorrectionState::new(CorrectionKind::Bias, bias_period),
+            },
+            sampling_time,
+            observed: 0,
+        }
+    }
+
+    /// A controller with the Richards model, which reads the full state of
+    /// the field it is given at every decision.
+    pub fn richards(settings: MpcSettings, sampling_time: f64) -> Controller {
+        Controller {
+            mpc: ZoneMpc::new(settings),
+            model: Model::Richards,
+            sampling_time,
+            observed: 0,
+        }
+    }
+
+    pub fn settings(&self) -> &MpcSettings {
+        &self.mpc.settings
+    }
+
+    /// The bias in force (0 for the Richards model).
+    pub fn bias(&self) -> f64 {
+        match &self.model {
+            Model::Surrogate { model, .. } => model.bias,
+            Model::Richards => 0.0,
+        }
+    }
+
+    /// Records the last step: `irrigation` applied [m/s], `precip_mm` of
+    /// rain observed over it, `measured` θ at its end. Updates the window and
+    /// refits the bias on the bias-free one-step prediction of that step.
+    pub fn observe(&mut self, irrigation: f64, precip_mm: f64, measured: f64) {
+        self.observed += 1;
+        if let Model::Surrogate { model, correction } = &mut self.model {
+            let supply = irrigation + mm_to_rate(precip_mm, self.sampling_time);
+            if measured.is_finite() {
+                if let Ok(predicted) = model.one_step(supply) {
+                    model.bias = correction.observe(measured, predicted).b;
+                }
+                model.push(supply, measured);
+            }
+        }
+    }
+
+    /// Solves the zone MPC for the next step under `forecast` (one entry per
+    /// horizon step). The Richards controller needs `field` (its true state);
+    /// without one it falls back to no irrigation and says so.
+    pub fn decide(&mut self, forecast: &[WeatherStep], field: Option<&Field>) -> Decision {
+        let n = self.mpc.settings.horizon;
+        let rain: Vec<f64> = (0..n)
+            .map(|k| {
+                forecast
+                    .get(k)
+                    .or(forecast.last())
+                    .map_or(0.0, |w| mm_to_rate(w.precip_mm, self.sampling_time))
+            })
+            .collect();
+        let solution = match (&mut self.model, field) {
+            (Model::Surrogate { model, .. }, _) => {
+                model.rain = rain;
+                self.mpc.solve(model.as_mut() as &mut dyn PredictionModel)
+            }
+            (Model::Richards, Some(field)) => {
+                let mut model = RichardsModel::new(field, forecast);
+                self.mpc.solve(&mut model)
+            }
+            (Model::Richards, None) => Solution {
+                plan: vec![0.0; n],
+                predicted: Vec::new(),
+                zone: (1..=n)
+                    .map(|k| self.mpc.settings.zone.bounds(k, n))
+                    .collect(),
+                status: SolveStatus::Fallback("the Richards model needs the field state".into()),
+                iterations: 0,
+                objective: f64::NAN,
+                solve_time: std::time::Duration::ZERO,
+            },
+        };
+        let first = solution.plan.first().copied().unwrap_or(0.0);
+        let setpoint = if first.is_finite() {
+            first.clamp(0.0, self.mpc.settings.u_max)
+        } else {
+            0.0
+        };
+        Decision { setpoint, solution }
+    }
+}
