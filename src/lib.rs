@@ -1,12 +1,15 @@
 //! rootzone: closed-loop irrigation by zone model predictive control.
 //!
 //! `soil` simulates the Richards soil-water equation (the plant), `weather`
-//! reads weather scenarios and perturbs forecasts, `simulate` runs the
-//! simulator over files for the CLI. Data flows one way: files and
-//! measurements in at the edge, physics in the middle, reports out.
+//! reads weather scenarios and perturbs forecasts, `surrogate` holds the
+//! neural-network models, `control` the zone MPC and the closed loop,
+//! `experiment` the paper's experiments, `service` the daemon. Data flows one
+//! way: measurements and forecasts in at the edge, physics and surrogates
+//! predict, the controller decides, the edge publishes.
 
 pub mod control;
 pub mod experiment;
+pub mod service;
 pub mod simulate;
 pub mod soil;
 pub mod surrogate;

@@ -88,6 +88,13 @@ enum Command {
         #[arg(long, default_value_t = 5000)]
         samples: usize,
     },
+    /// Run the controller daemon: HTTP API, control loop, simulated fields.
+    Serve {
+        /// TOML configuration (see config/default.toml); environment
+        /// variables ROOTZONE_… override it.
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
 }
 
 /// Exit code for bad input (files, values, arguments).
@@ -153,6 +160,7 @@ fn main() -> ExitCode {
             }
             Ok(())
         })(),
+        Command::Serve { config } => serve(config),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -233,4 +241,46 @@ fn train(
         outcome.seconds
     );
     Ok(())
+}
+
+/// `rootzone serve`: builds the daemon, says where it is, serves until
+/// SIGINT/SIGTERM.
+fn serve(config: Option<PathBuf>) -> anyhow::Result<()> {
+    use rootzone::service::{App, Settings, shutdown_signal};
+    let settings = Settings::load(config.as_deref())?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .max_blocking_threads(settings.limits.worker_threads.max(1) + 4)
+        .build()?;
+    runtime.block_on(async move {
+        let token_source = if settings.api_token.is_some() {
+            "from the configuration".to_string()
+        } else {
+            format!("in {}", settings.data_dir.join("api-token").display())
+        };
+        let data = settings.data_dir.clone();
+        let speedup = settings.clock.speedup;
+        let app = App::build(settings).await?;
+        let addr = app.local_addr()?;
+        // a closed stdout must not stop the daemon: write errors are ignored
+        let say = |line: String| {
+            use std::io::Write;
+            let mut out = std::io::stdout();
+            let _ = writeln!(out, "{line}");
+            let _ = out.flush();
+        };
+        say(format!(
+            "rootzone listening on http://{addr} (API under /v1, metrics at /metrics)"
+        ));
+        say(format!(
+            "data in {}; API token {token_source}",
+            data.display()
+        ));
+        if speedup != 1.0 {
+            say(format!("clock running {speedup}× real time"));
+        }
+        app.run(shutdown_signal()).await?;
+        say("rootzone stopped".into());
+        Ok(())
+    })
 }

@@ -240,6 +240,12 @@ impl ZoneMpc {
         u
     }
 
+    /// Takes `plan` (rates [m/s]) as the previous solve's, so the next solve
+    /// starts from it shifted by one step (a controller rebuilt from storage).
+    pub fn remember(&mut self, plan: Vec<f64>) {
+        self.previous = Some(plan);
+    }
+
     /// Forgets the previous plan (the next solve starts from zero irrigation).
     pub fn reset(&mut self) {
         self.previous = None;

@@ -178,6 +178,26 @@ impl Field {
         self.steps
     }
 
+    /// Puts the field in a stored state: heads and amounts, the simulated
+    /// time and the number of completed steps. The noise generators restart
+    /// from the seed and the step count, so a resumed field draws a
+    /// reproducible, but not the same, noise sequence as one never stopped.
+    pub fn restore(&mut self, state: ColumnState, time: f64, steps: usize) -> Result<(), String> {
+        if state.heads.len() != self.state.heads.len() || state.heads.iter().any(|h| !h.is_finite())
+        {
+            return Err("a stored state needs one finite head per cell".into());
+        }
+        self.state = state;
+        self.time = time;
+        self.steps = steps;
+        let seed = self.settings.seed ^ (steps as u64).rotate_left(32);
+        self.process_rng = ChaCha8Rng::seed_from_u64(seed);
+        self.process_rng.set_stream(1);
+        self.measurement_rng = ChaCha8Rng::seed_from_u64(seed);
+        self.measurement_rng.set_stream(2);
+        Ok(())
+    }
+
     /// The field's integrator (with its column), e.g. to predict from
     /// [`Field::state`] without advancing the field.
     pub fn integrator(&self) -> &Integrator {

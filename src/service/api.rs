@@ -1,0 +1,597 @@
+//! The HTTP API (JSON, versioned under `/v1`; see `openapi.yaml`). Errors are
+//! `application/problem+json` (RFC 9457); mutating requests need the bearer
+//! token.
+
+use std::sync::Arc;
+
+use axum::body::Bytes;
+use axum::extract::rejection::{BytesRejection, QueryRejection};
+use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use chrono::{DateTime, TimeDelta, Utc};
+use serde::Deserialize;
+use serde::de::DeserializeOwned;
+
+use super::wire::{Field, FieldSpec, Forecast, Measurement};
+use super::{AppState, run_cycle, start_field, stop_field};
+
+/// Largest request body.
+pub const MAX_BODY: usize = 1 << 20;
+
+/// An API error, rendered as problem+json.
+#[derive(Debug)]
+pub struct ApiError {
+    pub status: StatusCode,
+    pub detail: String,
+}
+
+impl ApiError {
+    pub fn new(status: StatusCode, detail: impl Into<String>) -> ApiError {
+        ApiError {
+            status,
+            detail: detail.into(),
+        }
+    }
+
+    fn bad(detail: impl Into<String>) -> ApiError {
+        ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, detail)
+    }
+
+    fn internal(e: impl std::fmt::Display) -> ApiError {
+        ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let body = serde_json::json!({
+            "type": "about:blank",
+            "title": self.status.canonical_reason().unwrap_or("Error"),
+            "status": self.status.as_u16(),
+            "detail": self.detail,
+        });
+        let mut response = (self.status, body.to_string()).into_response();
+        response.headers_mut().insert(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/problem+json"),
+        );
+        if self.status == StatusCode::UNAUTHORIZED {
+            response
+                .headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        response
+    }
+}
+
+type ApiResult<T> = Result<T, ApiError>;
+
+/// The router of the whole API.
+pub fn router(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/healthz", get(|| async { "ok\n" }))
+        .route("/readyz", get(ready))
+        .route("/metrics", get(metrics))
+        .route("/v1/fields", post(create_field).get(list_fields))
+        .route(
+            "/v1/fields/{id}",
+            get(get_field).patch(patch_field).delete(delete_field),
+        )
+        .route(
+            "/v1/fields/{id}/measurements",
+            post(post_measurements).get(get_measurements),
+        )
+        .route(
+            "/v1/fields/{id}/forecast",
+            get(get_forecast).put(put_forecast),
+        )
+        .route("/v1/fields/{id}/setpoint", get(get_setpoint))
+        .route("/v1/fields/{id}/setpoints", get(get_setpoints))
+        .route("/v1/fields/{id}/control", post(post_control))
+        .route("/v1/fields/{id}/simulation", get(get_simulation))
+        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
+        .layer(DefaultBodyLimit::max(MAX_BODY))
+        .with_state(state)
+}
+
+/// Checks the bearer token of a mutating request.
+fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
+    let Some(value) = headers.get(header::AUTHORIZATION) else {
+        return Err(ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "this request needs 'Authorization: Bearer <token>'",
+        ));
+    };
+    let given = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .unwrap_or("");
+    // compare without an early exit on the first differing byte
+    let (a, b) = (given.as_bytes(), state.token.as_bytes());
+    let same = a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0;
+    if same {
+        Ok(())
+    } else {
+        Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "the bearer token is not valid",
+        ))
+    }
+}
+
+/// Parses a JSON body (within the size limit) into `T`.
+fn json_body<T: DeserializeOwned>(body: Result<Bytes, BytesRejection>) -> ApiResult<T> {
+    let bytes = body.map_err(|r| {
+        let status = r.status();
+        if status == StatusCode::PAYLOAD_TOO_LARGE {
+            ApiError::new(status, format!("the body exceeds {MAX_BODY} bytes"))
+        } else {
+            ApiError::new(status, r.body_text())
+        }
+    })?;
+    serde_json::from_slice(&bytes).map_err(|e| {
+        let status = if e.is_data() {
+            StatusCode::UNPROCESSABLE_ENTITY
+        } else {
+            StatusCode::BAD_REQUEST
+        };
+        ApiError::new(status, format!("invalid JSON body: {e}"))
+    })
+}
+
+fn field_id(raw: &str) -> ApiResult<i64> {
+    raw.parse::<i64>()
+        .map_err(|_| ApiError::new(StatusCode::NOT_FOUND, format!("no field '{raw}'")))
+}
+
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> ApiResult<T> + Send + 'static,
+) -> ApiResult<T> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(ApiError::internal)?
+}
+
+async fn load_field(state: &Arc<AppState>, raw: &str) -> ApiResult<Field> {
+    let id = field_id(raw)?;
+    let engine = state.engine.clone();
+    blocking(move || {
+        engine
+            .store
+            .field(id)
+            .map_err(ApiError::internal)?
+            .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no field {id}")))
+    })
+    .await
+}
+
+async fn ready(State(state): State<Arc<AppState>>) -> ApiResult<&'static str> {
+    let engine = state.engine.clone();
+    blocking(move || {
+        engine
+            .store
+            .meta("ready-check")
+            .map_err(|e| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, e.to_string()))
+    })
+    .await?;
+    Ok("ready\n")
+}
+
+async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        state.metrics.render(),
+    )
+}
+
+async fn create_field(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> ApiResult<(StatusCode, Json<Field>)> {
+    authorize(&state, &headers)?;
+    let spec: FieldSpec = json_body(body)?;
+    spec.validate().map_err(ApiError::bad)?;
+    let engine = state.engine.clone();
+    let now = state.clock.now();
+    let field = blocking(move || {
+        engine
+            .store
+            .create_field(&spec, now)
+            .map_err(ApiError::internal)
+    })
+    .await?;
+    start_field(&state, &field);
+    Ok((StatusCode::CREATED, Json(field)))
+}
+
+async fn list_fields(State(state): State<Arc<AppState>>) -> ApiResult<Json<Vec<Field>>> {
+    let engine = state.engine.clone();
+    Ok(Json(
+        blocking(move || engine.store.fields().map_err(ApiError::internal)).await?,
+    ))
+}
+
+async fn get_field(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<Field>> {
+    Ok(Json(load_field(&state, &id).await?))
+}
+
+/// Merges a JSON object into the field's spec (RFC 7396 merge patch).
+async fn patch_field(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> ApiResult<Json<Field>> {
+    authorize(&state, &headers)?;
+    let field = load_field(&state, &id).await?;
+    let patch: serde_json::Value = json_body(body)?;
+    if !patch.is_object() {
+        return Err(ApiError::bad("a patch must be a JSON object"));
+    }
+    let mut doc = serde_json::to_value(&field.spec).map_err(ApiError::internal)?;
+    merge(&mut doc, patch);
+    let spec: FieldSpec = serde_json::from_value(doc)
+        .map_err(|e| ApiError::bad(format!("invalid field after the patch: {e}")))?;
+    spec.validate().map_err(ApiError::bad)?;
+    let engine = state.engine.clone();
+    let s = spec.clone();
+    let id = field.id;
+    blocking(move || {
+        engine
+            .store
+            .update_field(id, &s)
+            .map_err(ApiError::internal)
+    })
+    .await?;
+    let field = Field { spec, ..field };
+    stop_field(&state, field.id);
+    start_field(&state, &field);
+    Ok(Json(field))
+}
+
+fn merge(doc: &mut serde_json::Value, patch: serde_json::Value) {
+    match (doc, patch) {
+        (serde_json::Value::Object(d), serde_json::Value::Object(p)) => {
+            for (k, v) in p {
+                if v.is_null() {
+                    d.remove(&k);
+                } else {
+                    merge(d.entry(k).or_insert(serde_json::Value::Null), v);
+                }
+            }
+        }
+        (d, p) => *d = p,
+    }
+}
+
+async fn delete_field(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<StatusCode> {
+    authorize(&state, &headers)?;
+    let field = load_field(&state, &id).await?;
+    stop_field(&state, field.id);
+    let engine = state.engine.clone();
+    blocking(move || {
+        engine
+            .store
+            .delete_field(field.id)
+            .map_err(ApiError::internal)
+    })
+    .await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// A measurement as sent: the time is parsed here so a bad one is named.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMeasurement {
+    time: String,
+    theta: f64,
+    #[serde(default)]
+    sensor: Option<String>,
+}
+
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum RawMeasurements {
+    One(RawMeasurement),
+    Many(Vec<RawMeasurement>),
+}
+
+fn parse_time(what: &str, raw: &str) -> ApiResult<DateTime<Utc>> {
+    DateTime::parse_from_rfc3339(raw)
+        .map(|t| t.to_utc())
+        .map_err(|e| {
+            ApiError::bad(format!(
+                "{what} = '{raw}' is not an RFC 3339 timestamp ({e})"
+            ))
+        })
+}
+
+async fn post_measurements(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> ApiResult<(StatusCode, Json<serde_json::Value>)> {
+    authorize(&state, &headers)?;
+    let raw: RawMeasurements = json_body(body).map_err(|e| {
+        if e.status == StatusCode::UNPROCESSABLE_ENTITY {
+            ApiError::bad(
+                "a body must be one measurement {time, theta, sensor?} or an array of them, \
+                 with no other keys",
+            )
+        } else {
+            e
+        }
+    })?;
+    let batch = match raw {
+        RawMeasurements::One(m) => vec![m],
+        RawMeasurements::Many(v) => v,
+    };
+    let limit = state.settings.limits.max_batch;
+    if batch.is_empty() {
+        return Err(ApiError::bad("the array holds no measurement"));
+    }
+    if batch.len() > limit {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!(
+                "{} measurements in one request; at most {limit}",
+                batch.len()
+            ),
+        ));
+    }
+    let now = state.clock.now();
+    let skew = TimeDelta::milliseconds((state.settings.limits.max_future_skew_s * 1000.0) as i64);
+    let mut parsed = Vec::with_capacity(batch.len());
+    for (i, m) in batch.into_iter().enumerate() {
+        let time = parse_time(&format!("measurements[{i}].time"), &m.time)?;
+        if time > now + skew {
+            return Err(ApiError::bad(format!(
+                "measurements[{i}].time = {} lies more than {} s in the future (now {})",
+                m.time,
+                state.settings.limits.max_future_skew_s,
+                now.to_rfc3339()
+            )));
+        }
+        if !(m.theta.is_finite() && (0.0..=1.0).contains(&m.theta)) {
+            return Err(ApiError::bad(format!(
+                "measurements[{i}].theta = {} must lie in [0, 1]",
+                m.theta
+            )));
+        }
+        if m.sensor.as_ref().is_some_and(|s| s.len() > 200) {
+            return Err(ApiError::bad(format!(
+                "measurements[{i}].sensor has more than 200 characters"
+            )));
+        }
+        parsed.push(Measurement {
+            time,
+            theta: m.theta,
+            sensor: m.sensor,
+        });
+    }
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    let n = parsed.len();
+    let last = parsed.last().map(|m| m.theta);
+    blocking(move || {
+        engine
+            .store
+            .add_measurements(field.id, &parsed)
+            .map_err(ApiError::internal)
+    })
+    .await?;
+    state.metrics.measurements.inc_by(n as u64);
+    if let Some(theta) = last {
+        state
+            .metrics
+            .theta
+            .with_label_values(&[field.id.to_string().as_str()])
+            .set(theta);
+    }
+    Ok((
+        StatusCode::CREATED,
+        Json(serde_json::json!({ "stored": n })),
+    ))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Range {
+    from: Option<String>,
+    to: Option<String>,
+    limit: Option<usize>,
+}
+
+/// A time window and a row limit.
+type Window = (Option<DateTime<Utc>>, Option<DateTime<Utc>>, usize);
+
+fn range(q: Result<Query<Range>, QueryRejection>) -> ApiResult<Window> {
+    let Query(q) = q.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, e.body_text()))?;
+    let from = q
+        .from
+        .as_deref()
+        .map(|t| parse_time("from", t))
+        .transpose()?;
+    let to = q.to.as_deref().map(|t| parse_time("to", t)).transpose()?;
+    let limit = q.limit.unwrap_or(1000);
+    if limit == 0 || limit > 100_000 {
+        return Err(ApiError::bad(format!(
+            "limit = {limit} must be in 1..=100000"
+        )));
+    }
+    Ok((from, to, limit))
+}
+
+async fn get_measurements(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    query: Result<Query<Range>, QueryRejection>,
+) -> ApiResult<Json<Vec<Measurement>>> {
+    let (from, to, limit) = range(query)?;
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    Ok(Json(
+        blocking(move || {
+            engine
+                .store
+                .measurements(field.id, from, to, limit)
+                .map_err(ApiError::internal)
+        })
+        .await?,
+    ))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawForecast {
+    issued_at: String,
+    start: String,
+    step_s: f64,
+    et0_mm: Vec<f64>,
+    precip_mm: Vec<f64>,
+}
+
+async fn put_forecast(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> ApiResult<Json<Forecast>> {
+    authorize(&state, &headers)?;
+    let raw: RawForecast = json_body(body)?;
+    let forecast = Forecast {
+        issued_at: parse_time("issued_at", &raw.issued_at)?,
+        start: parse_time("start", &raw.start)?,
+        step_s: raw.step_s,
+        et0_mm: raw.et0_mm,
+        precip_mm: raw.precip_mm,
+    };
+    forecast.validate().map_err(ApiError::bad)?;
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    let f = forecast.clone();
+    blocking(move || {
+        engine
+            .store
+            .put_forecast(field.id, &f)
+            .map_err(ApiError::internal)
+    })
+    .await?;
+    Ok(Json(forecast))
+}
+
+async fn get_forecast(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<Forecast>> {
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    blocking(move || {
+        engine
+            .store
+            .latest_forecast(field.id)
+            .map_err(ApiError::internal)?
+            .map(Json)
+            .ok_or_else(|| {
+                ApiError::new(
+                    StatusCode::NOT_FOUND,
+                    format!("field {} has no forecast", field.id),
+                )
+            })
+    })
+    .await
+}
+
+async fn get_setpoint(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<super::wire::Setpoint>> {
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    blocking(move || {
+        engine
+            .store
+            .recent_setpoints(field.id, 1)
+            .map_err(ApiError::internal)?
+            .into_iter()
+            .next()
+            .map(Json)
+            .ok_or_else(|| {
+                ApiError::new(
+                    StatusCode::NOT_FOUND,
+                    format!(
+                        "field {} has no setpoint yet (POST .../control runs a cycle)",
+                        field.id
+                    ),
+                )
+            })
+    })
+    .await
+}
+
+async fn get_setpoints(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    query: Result<Query<Range>, QueryRejection>,
+) -> ApiResult<Json<Vec<super::wire::Setpoint>>> {
+    let (from, to, limit) = range(query)?;
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    Ok(Json(
+        blocking(move || {
+            engine
+                .store
+                .setpoints(field.id, from, to, limit)
+                .map_err(ApiError::internal)
+        })
+        .await?,
+    ))
+}
+
+async fn post_control(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<Json<super::wire::Setpoint>> {
+    authorize(&state, &headers)?;
+    let field = load_field(&state, &id).await?;
+    let now = state.clock.now();
+    run_cycle(&state, field, now)
+        .await
+        .map(Json)
+        .map_err(ApiError::internal)
+}
+
+async fn get_simulation(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<super::engine::PlantState>> {
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    blocking(move || {
+        engine
+            .simulation_state(&field)
+            .map_err(ApiError::internal)?
+            .map(Json)
+            .ok_or_else(|| {
+                ApiError::new(
+                    StatusCode::NOT_FOUND,
+                    format!("field {} is not simulated", field.id),
+                )
+            })
+    })
+    .await
+}

@@ -1,0 +1,638 @@
+//! The daemon's work, synchronous (it runs on the blocking pool): a field's
+//! control cycle, rebuilt from storage every time, and the simulated plants.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use chrono::{DateTime, TimeDelta, Timelike, Utc};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::control::{PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc};
+use crate::soil::{ColumnState, Field as Plant, FieldSettings};
+use crate::surrogate::ModelFile;
+use crate::surrogate::evaluate::WINDOW;
+use crate::weather::{
+    DRY_SCENARIO, RAIN_SCENARIO, WeatherSeries, WeatherStep, mm_to_rate, rate_to_mm,
+};
+
+use super::store::{Store, StoreError};
+use super::wire::{Actuator, Field, Forecast, ModelKind, Scenario, Setpoint, SimulationSpec};
+
+/// How many past setpoints enter the bias (MODEL.md: f = 2).
+const BIAS_PERIOD: usize = 2;
+/// Scenario step [s].
+const SCENARIO_STEP: f64 = 7200.0;
+
+/// The surrogates, loaded once.
+pub struct Models {
+    pub two_layer: ModelFile,
+    pub lstm: ModelFile,
+}
+
+/// Shared state of the work: storage, models, the simulated plants.
+pub struct Engine {
+    pub store: Arc<Store>,
+    pub models: Models,
+    plants: Mutex<HashMap<i64, Arc<Mutex<SimulatedPlant>>>>,
+    dry: WeatherSeries,
+    rain: WeatherSeries,
+}
+
+/// A failure of the work (not of the input).
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("simulated field {0}: {1}")]
+    Plant(i64, String),
+}
+
+/// The stored state of a simulated plant.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PlantState {
+    /// Clock time of the state.
+    pub time: DateTime<Utc>,
+    /// Completed measurement intervals.
+    pub steps: usize,
+    pub heads: Vec<f64>,
+    pub amounts: [f64; 4],
+    /// True θ at the sensor.
+    pub theta: f64,
+    /// Water balance [m]: infiltration, drainage, uptake, runoff.
+    pub infiltration_m: f64,
+    pub drainage_m: f64,
+    pub uptake_m: f64,
+    pub runoff_m: f64,
+}
+
+/// A simulated field: the Richards plant and when it is.
+pub struct SimulatedPlant {
+    plant: Plant,
+    time: DateTime<Utc>,
+    /// Midnight (UTC) of the field's first day: the scenario's hour 0.
+    day_zero: DateTime<Utc>,
+    spec: SimulationSpec,
+}
+
+impl SimulatedPlant {
+    pub fn state(&self) -> PlantState {
+        let b = self.plant.water_balance();
+        PlantState {
+            time: self.time,
+            steps: self.plant.steps(),
+            heads: self.plant.pressure_heads().to_vec(),
+            amounts: self.plant.state().amounts,
+            theta: self.plant.water_content(),
+            infiltration_m: b.infiltration,
+            drainage_m: b.drainage,
+            uptake_m: b.uptake,
+            runoff_m: b.runoff,
+        }
+    }
+}
+
+fn seconds(d: TimeDelta) -> f64 {
+    d.num_milliseconds() as f64 / 1000.0
+}
+
+impl Engine {
+    pub fn new(store: Arc<Store>, models: Models) -> Engine {
+        Engine {
+            store,
+            models,
+            plants: Mutex::new(HashMap::new()),
+            dry: WeatherSeries::parse(DRY_SCENARIO, "embedded weather-dry.csv")
+                .expect("embedded scenario"),
+            rain: WeatherSeries::parse(RAIN_SCENARIO, "embedded weather-rain.csv")
+                .expect("embedded scenario"),
+        }
+    }
+
+    fn scenario(&self, s: Scenario) -> &WeatherSeries {
+        match s {
+            Scenario::Dry => &self.dry,
+            Scenario::Rain => &self.rain,
+        }
+    }
+
+    /// The scenario's weather (amounts per 2-h step) at clock time `t`.
+    fn weather_at(&self, s: Scenario, day_zero: DateTime<Utc>, t: DateTime<Utc>) -> WeatherStep {
+        let series = self.scenario(s);
+        let k = (seconds(t - day_zero) / SCENARIO_STEP).floor().max(0.0) as usize;
+        series.steps()[k % series.len()]
+    }
+
+    /// The climatological forecast: the dry scenario's daily ET0 cycle by
+    /// hour of day, no rain; amounts per step of `period` seconds.
+    fn climatology(&self, t: DateTime<Utc>, period: f64) -> WeatherStep {
+        let hour = t.hour() as f64 + t.minute() as f64 / 60.0;
+        let k = ((hour * 3600.0) / SCENARIO_STEP).floor() as usize % 12;
+        let step = self.dry.steps()[k];
+        WeatherStep {
+            start_hour: hour,
+            et0_mm: step.et0_mm * period / SCENARIO_STEP,
+            precip_mm: 0.0,
+        }
+    }
+
+    /// The simulated plant of `field`, created or resumed from storage.
+    pub fn plant(&self, field: &Field) -> Result<Option<Arc<Mutex<SimulatedPlant>>>, EngineError> {
+        let (Actuator::Simulated, Some(spec)) = (&field.spec.actuator, field.spec.simulation)
+        else {
+            return Ok(None);
+        };
+        let mut plants = self.plants.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(p) = plants.get(&field.id) {
+            return Ok(Some(p.clone()));
+        }
+        let settings = FieldSettings {
+            soil: field
+                .spec
+                .soil
+                .parameters()
+                .map_err(|e| EngineError::Plant(field.id, e))?,
+            crop: field.spec.crop(),
+            initial_head: spec.initial_head,
+            sampling_time: spec.measurement_interval_s,
+            process_noise: spec.process_noise,
+            measurement_noise: spec.measurement_noise,
+            seed: spec.seed,
+            ..FieldSettings::default()
+        };
+        let mut plant = Plant::new(settings).map_err(|e| EngineError::Plant(field.id, e))?;
+        let day_zero = field
+            .created_at
+            .with_hour(0)
+            .and_then(|t| t.with_minute(0))
+            .and_then(|t| t.with_second(0))
+            .and_then(|t| t.with_nanosecond(0))
+            .unwrap_or(field.created_at);
+        let mut time = field.created_at;
+        if let Some(body) = self.store.simulation(field.id)? {
+            let state: PlantState = serde_json::from_str(&body).map_err(StoreError::from)?;
+            plant
+                .restore(
+                    ColumnState {
+                        heads: state.heads,
+                        amounts: state.amounts,
+                    },
+                    state.steps as f64 * spec.measurement_interval_s,
+                    state.steps,
+                )
+                .map_err(|e| EngineError::Plant(field.id, e))?;
+            time = state.time;
+        }
+        let p = Arc::new(Mutex::new(SimulatedPlant {
+            plant,
+            time,
+            day_zero,
+            spec,
+        }));
+        plants.insert(field.id, p.clone());
+        Ok(Some(p))
+    }
+
+    /// Forgets a deleted field's plant.
+    pub fn forget(&self, field: i64) {
+        self.plants
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&field);
+    }
+
+    /// Advances a simulated field's plant to clock time `now`, one
+    /// measurement interval at a time, applying the setpoint in force at
+    /// each interval and storing each noisy measurement. Returns how many
+    /// measurements were stored.
+    pub fn advance_plant(&self, field: &Field, now: DateTime<Utc>) -> Result<usize, EngineError> {
+        let Some(plant) = self.plant(field)? else {
+            return Ok(0);
+        };
+        let mut p = plant.lock().unwrap_or_else(|e| e.into_inner());
+        let interval = TimeDelta::milliseconds((p.spec.measurement_interval_s * 1000.0) as i64);
+        let mut batch = Vec::new();
+        let mut rate = 0.0;
+        let mut rate_until = p.time;
+        while p.time + interval <= now {
+            if p.time >= rate_until {
+                // the latest setpoint issued at or before this interval's start
+                let recent = self.store.recent_setpoints(field.id, 8)?;
+                match recent.iter().find(|s| s.time <= p.time) {
+                    Some(s) if s.valid_until > p.time => {
+                        rate = s.rate;
+                        rate_until = s.valid_until;
+                    }
+                    _ => {
+                        rate = 0.0;
+                        rate_until = p.time + interval;
+                    }
+                }
+            }
+            // the scenario's 2-h amounts as rates, held over the interval
+            let forcing = self
+                .weather_at(p.spec.scenario, p.day_zero, p.time)
+                .forcing(rate, SCENARIO_STEP);
+            let report = p
+                .plant
+                .step(forcing)
+                .map_err(|e| EngineError::Plant(field.id, e.to_string()))?;
+            p.time += interval;
+            batch.push(super::wire::Measurement {
+                time: p.time,
+                theta: report.measured_water_content.clamp(0.0, 1.0),
+                sensor: Some("simulated".into()),
+            });
+        }
+        if !batch.is_empty() {
+            self.store.add_measurements(field.id, &batch)?;
+            let state = serde_json::to_string(&p.state()).map_err(StoreError::from)?;
+            self.store.put_simulation(field.id, &state)?;
+        }
+        Ok(batch.len())
+    }
+
+    /// The true state of a simulated field.
+    pub fn simulation_state(&self, field: &Field) -> Result<Option<PlantState>, EngineError> {
+        Ok(self
+            .plant(field)?
+            .map(|p| p.lock().unwrap_or_else(|e| e.into_inner()).state()))
+    }
+
+    /// A simulated field's weather service: the scenario from `now` with
+    /// forecast error, stored as the field's latest forecast.
+    fn simulated_forecast(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        steps: usize,
+    ) -> Result<(), EngineError> {
+        let Some(plant) = self.plant(field)? else {
+            return Ok(());
+        };
+        let (spec, day_zero) = {
+            let p = plant.lock().unwrap_or_else(|e| e.into_inner());
+            (p.spec, p.day_zero)
+        };
+        let period = field.spec.control_period_s;
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            spec.seed.wrapping_add(1000) ^ (now.timestamp() as u64).rotate_left(20),
+        );
+        let mut et0 = Vec::with_capacity(steps);
+        let mut precip = Vec::with_capacity(steps);
+        for k in 0..steps {
+            let t = now + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64);
+            let w = self.weather_at(spec.scenario, day_zero, t);
+            let truth = WeatherSeries::new(vec![WeatherStep {
+                et0_mm: w.et0_mm * period / SCENARIO_STEP,
+                precip_mm: w.precip_mm * period / SCENARIO_STEP,
+                ..w
+            }]);
+            let f = truth.forecast(0, 1, spec.forecast_error, &mut rng)[0];
+            et0.push(f.et0_mm);
+            precip.push(f.precip_mm);
+        }
+        self.store.put_forecast(
+            field.id,
+            &Forecast {
+                issued_at: now,
+                start: now,
+                step_s: period,
+                et0_mm: et0,
+                precip_mm: precip,
+            },
+        )?;
+        Ok(())
+    }
+
+    /// The horizon's weather (amounts per control period) from the latest
+    /// forecast, or the climatology where it is missing or stale.
+    fn horizon_weather(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        n: usize,
+    ) -> Result<(Vec<WeatherStep>, bool), EngineError> {
+        let period = field.spec.control_period_s;
+        let forecast = self
+            .store
+            .latest_forecast(field.id)?
+            .filter(|f| seconds(now - f.issued_at) <= 2.0 * period);
+        let mut defaulted = forecast.is_none();
+        let mut out = Vec::with_capacity(n);
+        for k in 0..n {
+            let t0 = now + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64);
+            let covered = forecast.as_ref().and_then(|f| {
+                // amounts of the forecast steps overlapping [t0, t0 + period)
+                let a = seconds(t0 - f.start);
+                let b = a + period;
+                let end = f.step_s * f.et0_mm.len() as f64;
+                if a < 0.0 || b > end + 1e-6 {
+                    return None;
+                }
+                let (mut et0, mut precip) = (0.0, 0.0);
+                let first = (a / f.step_s).floor() as usize;
+                let last = ((b / f.step_s).ceil() as usize).min(f.et0_mm.len());
+                for i in first..last {
+                    let lo = (i as f64 * f.step_s).max(a);
+                    let hi = ((i + 1) as f64 * f.step_s).min(b);
+                    let share = ((hi - lo) / f.step_s).max(0.0);
+                    et0 += f.et0_mm[i] * share;
+                    precip += f.precip_mm[i] * share;
+                }
+                Some(WeatherStep {
+                    start_hour: 0.0,
+                    et0_mm: et0,
+                    precip_mm: precip,
+                })
+            });
+            match covered {
+                Some(w) => out.push(w),
+                None => {
+                    defaulted = true;
+                    out.push(self.climatology(t0, period));
+                }
+            }
+        }
+        Ok((out, defaulted))
+    }
+
+    /// One control cycle of `field` at clock time `now`: the window from the
+    /// stored history, the forecast, the zone MPC, the stored setpoint.
+    pub fn control_cycle(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+    ) -> Result<Setpoint, EngineError> {
+        let spec = &field.spec;
+        let period = spec.control_period_s;
+        let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
+        let settings = spec.mpc_settings();
+        let n = settings.horizon;
+        let simulated = self.plant(field)?.is_some();
+        if simulated {
+            self.advance_plant(field, now)?;
+            self.simulated_forecast(field, now, n)?;
+        }
+        let mut degraded = Vec::new();
+        let (weather, defaulted) = self.horizon_weather(field, now, n)?;
+        if defaulted {
+            degraded.push("default-forecast".to_string());
+        }
+        let recent = self
+            .store
+            .recent_setpoints(field.id, WINDOW + BIAS_PERIOD)?;
+        let latest = self.store.measurement_before(field.id, now)?;
+        let fresh = latest
+            .as_ref()
+            .filter(|m| seconds(now - m.time) <= 2.0 * period);
+        // the current θ: measured, or predicted by the last cycle when stale
+        let mut current = fresh.map(|m| m.theta);
+        if current.is_none() {
+            if latest.is_some() {
+                degraded.push("stale-measurement".into());
+            } else {
+                degraded.push("no-measurement".into());
+            }
+            current = recent.first().and_then(|s| {
+                let k = (seconds(now - s.time) / period).round() as usize;
+                s.predicted_theta.get(k.saturating_sub(1)).copied()
+            });
+            if current.is_none() {
+                current = latest.as_ref().map(|m| m.theta);
+            }
+        }
+        let rain_rate: Vec<f64> = weather
+            .iter()
+            .map(|w| mm_to_rate(w.precip_mm, period))
+            .collect();
+        let mut mpc = ZoneMpc::new(settings);
+        if let Some(prev) = recent.first()
+            && seconds(now - prev.time) <= 1.5 * period
+            && prev.model == spec.model
+        {
+            mpc.remember(prev.plan.clone());
+        }
+        let mut bias = 0.0;
+        let mut one_step: Option<SurrogateModel> = None;
+        let solution = match (current, spec.model) {
+            (None, _) => None,
+            (Some(theta), ModelKind::Richards) => {
+                let mut model = match self.plant(field)? {
+                    Some(plant) => {
+                        let p = plant.lock().unwrap_or_else(|e| e.into_inner());
+                        let mut copy = Plant::new(FieldSettings {
+                            sampling_time: period,
+                            ..*p.plant.settings()
+                        })
+                        .map_err(|e| EngineError::Plant(field.id, e))?;
+                        copy.restore(p.plant.state().clone(), 0.0, 0)
+                            .map_err(|e| EngineError::Plant(field.id, e))?;
+                        RichardsModel::new(&copy, &weather)
+                    }
+                    None => {
+                        // no state estimate: the column in equilibrium with θ
+                        let soil = spec
+                            .soil
+                            .parameters()
+                            .map_err(|e| EngineError::Plant(field.id, e))?;
+                        let head = soil.pressure_head_at(theta.clamp(
+                            soil.residual_water_content + 1e-6,
+                            soil.saturated_water_content - 1e-6,
+                        ));
+                        let plant = Plant::new(FieldSettings {
+                            soil,
+                            crop: spec.crop(),
+                            initial_head: head,
+                            sampling_time: period,
+                            ..FieldSettings::default()
+                        })
+                        .map_err(|e| EngineError::Plant(field.id, e))?;
+                        RichardsModel::new(&plant, &weather)
+                    }
+                };
+                Some(mpc.solve(&mut model as &mut dyn PredictionModel))
+            }
+            (Some(theta), kind) => {
+                let file = if kind == ModelKind::Lstm {
+                    &self.models.lstm
+                } else {
+                    &self.models.two_layer
+                };
+                let (past_u, past_y) = self.window(field, now, theta, &recent)?;
+                let mut model = SurrogateModel::new(file.predictor(), past_u, past_y);
+                // bias: mean over the last f cycles of y(t) − ŷ(t | t − 1)
+                let mut residuals = Vec::new();
+                for s in recent
+                    .iter()
+                    .filter(|s| s.valid_until <= now)
+                    .take(BIAS_PERIOD)
+                {
+                    if let Some(m) = self.store.measurement_before(field.id, s.valid_until)?
+                        && seconds(s.valid_until - m.time) <= period / 2.0
+                        && s.predicted_next.is_finite()
+                    {
+                        residuals.push(m.theta - s.predicted_next);
+                    }
+                }
+                if !residuals.is_empty() {
+                    bias = residuals.iter().sum::<f64>() / residuals.len() as f64;
+                }
+                model.bias = bias;
+                model.rain = rain_rate.clone();
+                let sol = mpc.solve(&mut model);
+                one_step = Some(model);
+                Some(sol)
+            }
+        };
+        let Some(solution) = solution else {
+            degraded.push("solver-fallback".into());
+            let setpoint = Setpoint {
+                field_id: field.id,
+                time: now,
+                valid_from: now,
+                valid_until: now + period_d,
+                rate: 0.0,
+                amount_mm: 0.0,
+                plan: vec![0.0; n],
+                predicted_theta: Vec::new(),
+                zone: (1..=n)
+                    .map(|k| {
+                        let (l, u) = settings.zone.bounds(k, n);
+                        [l, u]
+                    })
+                    .collect(),
+                model: spec.model,
+                status: "fallback".into(),
+                fallback_reason: Some("no measurement yet: no irrigation".into()),
+                iterations: 0,
+                solve_ms: 0.0,
+                degraded,
+                bias: 0.0,
+                predicted_next: f64::NAN,
+            };
+            self.store.add_setpoint(&setpoint)?;
+            return Ok(setpoint);
+        };
+        let first = solution.plan.first().copied().unwrap_or(0.0);
+        let rate = if first.is_finite() {
+            first.clamp(0.0, settings.u_max)
+        } else {
+            0.0
+        };
+        let (status, reason) = match &solution.status {
+            SolveStatus::Converged => ("converged", None),
+            SolveStatus::IterationCap => ("iteration-cap", None),
+            SolveStatus::TimeBudget => ("time-budget", None),
+            SolveStatus::Fallback(why) => ("fallback", Some(why.clone())),
+        };
+        if reason.is_some() {
+            degraded.push("solver-fallback".into());
+        }
+        let predicted_next = match one_step.as_mut() {
+            Some(model) => model
+                .one_step(rate + rain_rate.first().copied().unwrap_or(0.0))
+                .unwrap_or(f64::NAN),
+            None => solution.predicted.first().copied().unwrap_or(f64::NAN),
+        };
+        let setpoint = Setpoint {
+            field_id: field.id,
+            time: now,
+            valid_from: now,
+            valid_until: now + period_d,
+            rate,
+            amount_mm: rate_to_mm(rate, period),
+            plan: solution
+                .plan
+                .iter()
+                .map(|u| {
+                    if u.is_finite() {
+                        u.clamp(0.0, settings.u_max)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect(),
+            predicted_theta: solution.predicted.clone(),
+            zone: solution.zone.iter().map(|&(l, u)| [l, u]).collect(),
+            model: spec.model,
+            status: status.into(),
+            fallback_reason: reason,
+            iterations: solution.iterations,
+            solve_ms: solution.solve_time.as_secs_f64() * 1e3,
+            degraded,
+            bias,
+            predicted_next,
+        };
+        self.store.add_setpoint(&setpoint)?;
+        Ok(setpoint)
+    }
+
+    /// The surrogate window at `now`: for each of the last 20 periods, the
+    /// supply (the setpoint in force, plus the rain of a simulated field) and
+    /// θ measured at its end; before the first measurement, (0, first θ).
+    fn window(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        current: f64,
+        recent: &[Setpoint],
+    ) -> Result<(Vec<f64>, Vec<f64>), EngineError> {
+        let period = field.spec.control_period_s;
+        let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
+        let scenario = match (&field.spec.actuator, field.spec.simulation) {
+            (Actuator::Simulated, Some(sim)) => Some(sim.scenario),
+            _ => None,
+        };
+        let day_zero = self
+            .plant(field)?
+            .map(|p| p.lock().unwrap_or_else(|e| e.into_inner()).day_zero);
+        let mut past_u = vec![0.0; WINDOW];
+        let mut past_y: Vec<Option<f64>> = vec![None; WINDOW];
+        for k in 0..WINDOW {
+            // sample k ends at now − (WINDOW − 1 − k) periods
+            let end = now - period_d * (WINDOW - 1 - k) as i32;
+            let mid = end - period_d / 2;
+            past_y[k] = if k + 1 == WINDOW {
+                Some(current)
+            } else {
+                self.store
+                    .measurement_before(field.id, end)?
+                    .filter(|m| seconds(end - m.time) <= period)
+                    .map(|m| m.theta)
+            };
+            let applied = recent
+                .iter()
+                .find(|s| s.valid_from <= mid && mid < s.valid_until)
+                .map_or(0.0, |s| s.rate);
+            let rain = match (scenario, day_zero) {
+                (Some(sc), Some(d0)) => {
+                    let w = self.weather_at(sc, d0, mid);
+                    mm_to_rate(w.precip_mm, SCENARIO_STEP)
+                }
+                _ => 0.0,
+            };
+            past_u[k] = applied + rain;
+        }
+        // before the first measurement: padded with it and no supply; gaps
+        // carry the previous value forward
+        let first = past_y
+            .iter()
+            .position(Option::is_some)
+            .unwrap_or(WINDOW - 1);
+        let first_y = past_y[first].unwrap_or(current);
+        let mut y = Vec::with_capacity(WINDOW);
+        let mut last = first_y;
+        for (k, v) in past_y.iter().enumerate() {
+            if k < first {
+                past_u[k] = 0.0;
+                y.push(first_y);
+            } else {
+                last = v.unwrap_or(last);
+                y.push(last);
+            }
+        }
+        Ok((past_u, y))
+    }
+}

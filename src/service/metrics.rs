@@ -1,0 +1,98 @@
+//! Prometheus metrics of the daemon.
+
+use prometheus::{
+    Encoder, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, Opts, Registry,
+    TextEncoder,
+};
+
+/// The daemon's metrics and their registry.
+pub struct Metrics {
+    registry: Registry,
+    pub measurements: IntCounter,
+    pub cycles: IntCounterVec,
+    pub degraded: IntCounterVec,
+    pub solve_seconds: Histogram,
+    pub theta: GaugeVec,
+    pub setpoint: GaugeVec,
+}
+
+impl Metrics {
+    pub fn new() -> Metrics {
+        let registry = Registry::new();
+        let measurements = IntCounter::new(
+            "rootzone_measurements_ingested_total",
+            "Measurements stored (API and simulated fields)",
+        )
+        .expect("valid metric");
+        let cycles = IntCounterVec::new(
+            Opts::new(
+                "rootzone_control_cycles_total",
+                "Control cycles by solver status",
+            ),
+            &["status"],
+        )
+        .expect("valid metric");
+        let degraded = IntCounterVec::new(
+            Opts::new(
+                "rootzone_degraded_cycles_total",
+                "Control cycles that ran in a degraded mode, by flag",
+            ),
+            &["flag"],
+        )
+        .expect("valid metric");
+        let solve_seconds = Histogram::with_opts(
+            HistogramOpts::new("rootzone_solve_seconds", "Zone-MPC solve time").buckets(vec![
+                0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
+            ]),
+        )
+        .expect("valid metric");
+        let theta = GaugeVec::new(
+            Opts::new(
+                "rootzone_field_theta",
+                "Latest water content of a field [m3/m3]",
+            ),
+            &["field"],
+        )
+        .expect("valid metric");
+        let setpoint = GaugeVec::new(
+            Opts::new(
+                "rootzone_field_setpoint_mm",
+                "Current irrigation setpoint of a field [mm per period]",
+            ),
+            &["field"],
+        )
+        .expect("valid metric");
+        for c in [
+            Box::new(measurements.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(cycles.clone()),
+            Box::new(degraded.clone()),
+            Box::new(solve_seconds.clone()),
+            Box::new(theta.clone()),
+            Box::new(setpoint.clone()),
+        ] {
+            registry.register(c).expect("unique metric names");
+        }
+        Metrics {
+            registry,
+            measurements,
+            cycles,
+            degraded,
+            solve_seconds,
+            theta,
+            setpoint,
+        }
+    }
+
+    /// The text exposition format.
+    pub fn render(&self) -> String {
+        let mut buffer = Vec::new();
+        let _ = TextEncoder::new().encode(&self.registry.gather(), &mut buffer);
+        String::from_utf8(buffer).unwrap_or_default()
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics::new()
+    }
+}

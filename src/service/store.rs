@@ -1,0 +1,376 @@
+//! Durable storage: SQLite (bundled) in WAL mode, schema migrations versioned
+//! in the code (`PRAGMA user_version`). Every write is its own transaction,
+//! committed before the caller acknowledges it.
+
+use std::path::Path;
+use std::sync::Mutex;
+
+use chrono::{DateTime, TimeZone, Utc};
+use rusqlite::{Connection, OptionalExtension, params};
+
+use super::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
+
+/// The schema, one migration per entry; entry i brings the database to
+/// version i + 1.
+const MIGRATIONS: &[&str] = &[
+    "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+     CREATE TABLE fields (
+         id INTEGER PRIMARY KEY AUTOINCREMENT,
+         created_at INTEGER NOT NULL,
+         spec TEXT NOT NULL);
+     CREATE TABLE measurements (
+         field_id INTEGER NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
+         time INTEGER NOT NULL,
+         theta REAL NOT NULL,
+         sensor TEXT);
+     CREATE INDEX measurements_by_time ON measurements(field_id, time);
+     CREATE TABLE forecasts (
+         id INTEGER PRIMARY KEY AUTOINCREMENT,
+         field_id INTEGER NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
+         issued_at INTEGER NOT NULL,
+         body TEXT NOT NULL);
+     CREATE INDEX forecasts_by_field ON forecasts(field_id, id);
+     CREATE TABLE setpoints (
+         id INTEGER PRIMARY KEY AUTOINCREMENT,
+         field_id INTEGER NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
+         time INTEGER NOT NULL,
+         body TEXT NOT NULL);
+     CREATE INDEX setpoints_by_time ON setpoints(field_id, time);
+     CREATE TABLE simulations (
+         field_id INTEGER PRIMARY KEY REFERENCES fields(id) ON DELETE CASCADE,
+         body TEXT NOT NULL);",
+];
+
+/// A storage operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("database: {0}")]
+    Sql(#[from] rusqlite::Error),
+    #[error("stored JSON: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("{0}")]
+    Io(String),
+}
+
+/// The database.
+pub struct Store {
+    conn: Mutex<Connection>,
+}
+
+fn millis(t: DateTime<Utc>) -> i64 {
+    t.timestamp_millis()
+}
+
+fn time(ms: i64) -> DateTime<Utc> {
+    Utc.timestamp_millis_opt(ms).single().unwrap_or_default()
+}
+
+impl Store {
+    /// Opens (creating) `dir/rootzone.sqlite3` and migrates it.
+    pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| StoreError::Io(format!("cannot create {}: {e}", dir.display())))?;
+        let conn = Connection::open(dir.join("rootzone.sqlite3"))?;
+        conn.pragma_update(None, "journal_mode", "WAL")?;
+        // NORMAL in WAL mode: a committed write survives a crash of the
+        // process (kill -9); only a power cut can lose the last commits
+        conn.pragma_update(None, "synchronous", "NORMAL")?;
+        conn.pragma_update(None, "foreign_keys", "ON")?;
+        conn.busy_timeout(std::time::Duration::from_secs(5))?;
+        let version: i64 = conn.pragma_query_value(None, "user_version", |r| r.get(0))?;
+        for (i, sql) in MIGRATIONS.iter().enumerate().skip(version.max(0) as usize) {
+            let tx = conn.unchecked_transaction()?;
+            tx.execute_batch(sql)?;
+            tx.pragma_update(None, "user_version", (i + 1) as i64)?;
+            tx.commit()?;
+        }
+        Ok(Store {
+            conn: Mutex::new(conn),
+        })
+    }
+
+    fn with<T>(
+        &self,
+        f: impl FnOnce(&mut Connection) -> Result<T, StoreError>,
+    ) -> Result<T, StoreError> {
+        let mut conn = self.conn.lock().unwrap_or_else(|p| p.into_inner());
+        f(&mut conn)
+    }
+
+    pub fn meta(&self, key: &str) -> Result<Option<String>, StoreError> {
+        self.with(|c| {
+            Ok(
+                c.query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0))
+                    .optional()?,
+            )
+        })
+    }
+
+    pub fn set_meta(&self, key: &str, value: &str) -> Result<(), StoreError> {
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO meta(key, value) VALUES (?1, ?2)
+                 ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                [key, value],
+            )?;
+            Ok(())
+        })
+    }
+
+    pub fn create_field(&self, spec: &FieldSpec, now: DateTime<Utc>) -> Result<Field, StoreError> {
+        let body = serde_json::to_string(spec)?;
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO fields(created_at, spec) VALUES (?1, ?2)",
+                params![millis(now), body],
+            )?;
+            Ok(Field {
+                id: c.last_insert_rowid(),
+                created_at: time(millis(now)),
+                spec: spec.clone(),
+            })
+        })
+    }
+
+    pub fn fields(&self) -> Result<Vec<Field>, StoreError> {
+        self.with(|c| {
+            let mut stmt = c.prepare("SELECT id, created_at, spec FROM fields ORDER BY id")?;
+            let rows = stmt.query_map([], |r| {
+                Ok((
+                    r.get::<_, i64>(0)?,
+                    r.get::<_, i64>(1)?,
+                    r.get::<_, String>(2)?,
+                ))
+            })?;
+            let mut out = Vec::new();
+            for row in rows {
+                let (id, created, spec) = row?;
+                out.push(Field {
+                    id,
+                    created_at: time(created),
+                    spec: serde_json::from_str(&spec)?,
+                });
+            }
+            Ok(out)
+        })
+    }
+
+    pub fn field(&self, id: i64) -> Result<Option<Field>, StoreError> {
+        let row = self.with(|c| {
+            Ok(c.query_row(
+                "SELECT created_at, spec FROM fields WHERE id = ?1",
+                [id],
+                |r| Ok((r.get::<_, i64>(0)?, r.get::<_, String>(1)?)),
+            )
+            .optional()?)
+        })?;
+        match row {
+            None => Ok(None),
+            Some((created, spec)) => Ok(Some(Field {
+                id,
+                created_at: time(created),
+                spec: serde_json::from_str(&spec)?,
+            })),
+        }
+    }
+
+    pub fn update_field(&self, id: i64, spec: &FieldSpec) -> Result<bool, StoreError> {
+        let body = serde_json::to_string(spec)?;
+        self.with(|c| {
+            Ok(c.execute(
+                "UPDATE fields SET spec = ?2 WHERE id = ?1",
+                params![id, body],
+            )? == 1)
+        })
+    }
+
+    /// Deletes a field with all its data.
+    pub fn delete_field(&self, id: i64) -> Result<bool, StoreError> {
+        self.with(|c| Ok(c.execute("DELETE FROM fields WHERE id = ?1", [id])? == 1))
+    }
+
+    /// Stores a batch of measurements in one transaction: all or nothing.
+    pub fn add_measurements(&self, field: i64, batch: &[Measurement]) -> Result<(), StoreError> {
+        self.with(|c| {
+            let tx = c.transaction()?;
+            {
+                let mut stmt = tx.prepare_cached(
+                    "INSERT INTO measurements(field_id, time, theta, sensor) VALUES (?1, ?2, ?3, ?4)",
+                )?;
+                for m in batch {
+                    stmt.execute(params![field, millis(m.time), m.theta, m.sensor])?;
+                }
+            }
+            tx.commit()?;
+            Ok(())
+        })
+    }
+
+    /// Measurements in [from, to], oldest first, at most `limit`.
+    pub fn measurements(
+        &self,
+        field: i64,
+        from: Option<DateTime<Utc>>,
+        to: Option<DateTime<Utc>>,
+        limit: usize,
+    ) -> Result<Vec<Measurement>, StoreError> {
+        self.with(|c| {
+            let mut stmt = c.prepare_cached(
+                "SELECT time, theta, sensor FROM measurements
+                 WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
+                 ORDER BY time, rowid LIMIT ?4",
+            )?;
+            let rows = stmt.query_map(
+                params![
+                    field,
+                    from.map_or(i64::MIN, millis),
+                    to.map_or(i64::MAX, millis),
+                    limit as i64
+                ],
+                |r| {
+                    Ok(Measurement {
+                        time: time(r.get(0)?),
+                        theta: r.get(1)?,
+                        sensor: r.get(2)?,
+                    })
+                },
+            )?;
+            Ok(rows.collect::<Result<Vec<_>, _>>()?)
+        })
+    }
+
+    /// The latest measurement at or before `at`.
+    pub fn measurement_before(
+        &self,
+        field: i64,
+        at: DateTime<Utc>,
+    ) -> Result<Option<Measurement>, StoreError> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT time, theta, sensor FROM measurements
+                 WHERE field_id = ?1 AND time <= ?2 ORDER BY time DESC, rowid DESC LIMIT 1",
+                params![field, millis(at)],
+                |r| {
+                    Ok(Measurement {
+                        time: time(r.get(0)?),
+                        theta: r.get(1)?,
+                        sensor: r.get(2)?,
+                    })
+                },
+            )
+            .optional()?)
+        })
+    }
+
+    pub fn count_measurements(&self, field: i64) -> Result<u64, StoreError> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT COUNT(*) FROM measurements WHERE field_id = ?1",
+                [field],
+                |r| r.get::<_, i64>(0),
+            )? as u64)
+        })
+    }
+
+    pub fn put_forecast(&self, field: i64, forecast: &Forecast) -> Result<(), StoreError> {
+        let body = serde_json::to_string(forecast)?;
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO forecasts(field_id, issued_at, body) VALUES (?1, ?2, ?3)",
+                params![field, millis(forecast.issued_at), body],
+            )?;
+            Ok(())
+        })
+    }
+
+    /// The forecast put last.
+    pub fn latest_forecast(&self, field: i64) -> Result<Option<Forecast>, StoreError> {
+        let body: Option<String> = self.with(|c| {
+            Ok(c.query_row(
+                "SELECT body FROM forecasts WHERE field_id = ?1 ORDER BY id DESC LIMIT 1",
+                [field],
+                |r| r.get(0),
+            )
+            .optional()?)
+        })?;
+        Ok(body.map(|b| serde_json::from_str(&b)).transpose()?)
+    }
+
+    pub fn add_setpoint(&self, setpoint: &Setpoint) -> Result<(), StoreError> {
+        let body = serde_json::to_string(setpoint)?;
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO setpoints(field_id, time, body) VALUES (?1, ?2, ?3)",
+                params![setpoint.field_id, millis(setpoint.time), body],
+            )?;
+            Ok(())
+        })
+    }
+
+    /// Setpoints in [from, to], oldest first, at most `limit`.
+    pub fn setpoints(
+        &self,
+        field: i64,
+        from: Option<DateTime<Utc>>,
+        to: Option<DateTime<Utc>>,
+        limit: usize,
+    ) -> Result<Vec<Setpoint>, StoreError> {
+        let bodies: Vec<String> = self.with(|c| {
+            let mut stmt = c.prepare_cached(
+                "SELECT body FROM setpoints WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
+                 ORDER BY time, id LIMIT ?4",
+            )?;
+            let rows = stmt.query_map(
+                params![
+                    field,
+                    from.map_or(i64::MIN, millis),
+                    to.map_or(i64::MAX, millis),
+                    limit as i64
+                ],
+                |r| r.get(0),
+            )?;
+            Ok(rows.collect::<Result<Vec<_>, _>>()?)
+        })?;
+        Ok(bodies
+            .iter()
+            .map(|b| serde_json::from_str(b))
+            .collect::<Result<_, _>>()?)
+    }
+
+    /// The latest `n` setpoints, newest first.
+    pub fn recent_setpoints(&self, field: i64, n: usize) -> Result<Vec<Setpoint>, StoreError> {
+        let bodies: Vec<String> = self.with(|c| {
+            let mut stmt = c.prepare_cached(
+                "SELECT body FROM setpoints WHERE field_id = ?1 ORDER BY time DESC, id DESC LIMIT ?2",
+            )?;
+            let rows = stmt.query_map(params![field, n as i64], |r| r.get(0))?;
+            Ok(rows.collect::<Result<Vec<_>, _>>()?)
+        })?;
+        Ok(bodies
+            .iter()
+            .map(|b| serde_json::from_str(b))
+            .collect::<Result<_, _>>()?)
+    }
+
+    pub fn simulation(&self, field: i64) -> Result<Option<String>, StoreError> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT body FROM simulations WHERE field_id = ?1",
+                [field],
+                |r| r.get(0),
+            )
+            .optional()?)
+        })
+    }
+
+    pub fn put_simulation(&self, field: i64, body: &str) -> Result<(), StoreError> {
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO simulations(field_id, body) VALUES (?1, ?2)
+                 ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
+                params![field, body],
+            )?;
+            Ok(())
+        })
+    }
+}

@@ -1,0 +1,483 @@
+//! The daemon end to end: the real `rootzone serve` on an ephemeral port with
+//! a temporary data directory, driven with curl.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+
+const TOKEN: &str = "test-token-0123456789";
+
+struct Daemon {
+    child: Child,
+    base: String,
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts the daemon with `config` (TOML) in `dir`; returns once it listens.
+fn start(dir: &Path, config: &str) -> Daemon {
+    let file = dir.join("rootzone.toml");
+    std::fs::write(&file, config).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rootzone"))
+        .args(["serve", "--config"])
+        .arg(&file)
+        .env("ROOTZONE_LISTEN", "127.0.0.1:0")
+        .env("ROOTZONE_DATA_DIR", dir.join("data"))
+        .env("ROOTZONE_API_TOKEN", TOKEN)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    let mut reader = BufReader::new(child.stdout.take().unwrap());
+    reader.read_line(&mut line).unwrap();
+    // keep draining what the daemon prints later
+    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
+    let base = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no address in '{line}'"))
+        .to_string();
+    Daemon { child, base }
+}
+
+/// A curl request: method, path, optional JSON body, with or without the
+/// token. Returns (status, content type, body).
+fn curl(
+    d: &Daemon,
+    method: &str,
+    path: &str,
+    body: Option<&str>,
+    token: Option<&str>,
+) -> (u16, String, String) {
+    let mut cmd = Command::new("curl");
+    cmd.args(["-s", "-X", method, "-w", "\n%{http_code}\n%{content_type}"]);
+    if let Some(t) = token {
+        cmd.args(["-H", &format!("Authorization: Bearer {t}")]);
+    }
+    if body.is_some() {
+        cmd.args([
+            "-H",
+            "Content-Type: application/json",
+            "--data-binary",
+            "@-",
+        ]);
+        cmd.stdin(Stdio::piped());
+    }
+    cmd.arg(format!("{}{path}", d.base));
+    cmd.stdout(Stdio::piped());
+    let mut child = cmd.spawn().expect("curl runs");
+    if let Some(b) = body {
+        use std::io::Write;
+        child.stdin.take().unwrap().write_all(b.as_bytes()).unwrap();
+    }
+    let out = child.wait_with_output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    let mut parts = text.rsplitn(3, '\n');
+    let ctype = parts.next().unwrap_or("").to_string();
+    let status = parts.next().unwrap_or("0").parse().unwrap_or(0);
+    let body = parts.next().unwrap_or("").to_string();
+    (status, ctype, body)
+}
+
+fn json_of(body: &str) -> Value {
+    serde_json::from_str(body).unwrap_or_else(|e| panic!("not JSON ({e}): {body}"))
+}
+
+/// Asserts a problem+json error with `status` whose detail contains `needle`.
+fn problem(r: (u16, String, String), status: u16, needle: &str) {
+    assert_eq!(r.0, status, "{}", r.2);
+    assert!(r.1.starts_with("application/problem+json"), "{}", r.1);
+    let v = json_of(&r.2);
+    assert_eq!(v["status"], status);
+    let detail = v["detail"].as_str().unwrap();
+    assert!(detail.contains(needle), "'{detail}' should name '{needle}'");
+}
+
+const EXTERNAL_FIELD: &str = r#"{"name": "north", "model": "two-layer"}"#;
+
+fn config(extra: &str) -> String {
+    format!(
+        "fields = []\n{extra}\n[limits]\nmax_batch = 50\nmax_future_skew_s = 300.0\nworker_threads = 2\n"
+    )
+}
+
+fn now_minus(minutes: i64) -> String {
+    (chrono::Utc::now() - chrono::TimeDelta::minutes(minutes)).to_rfc3339()
+}
+
+#[test]
+fn api_stores_controls_and_rejects_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    assert_eq!(curl(&d, "GET", "/healthz", None, None).0, 200);
+    assert_eq!(curl(&d, "GET", "/readyz", None, None).0, 200);
+
+    // auth: 401 without, 403 with a wrong token
+    problem(
+        curl(&d, "POST", "/v1/fields", Some(EXTERNAL_FIELD), None),
+        401,
+        "Bearer",
+    );
+    problem(
+        curl(
+            &d,
+            "POST",
+            "/v1/fields",
+            Some(EXTERNAL_FIELD),
+            Some("wrong-token"),
+        ),
+        403,
+        "token",
+    );
+    let r = curl(&d, "POST", "/v1/fields", Some(EXTERNAL_FIELD), Some(TOKEN));
+    assert_eq!(r.0, 201, "{}", r.2);
+    let field = json_of(&r.2);
+    let id = field["id"].as_i64().unwrap();
+    assert_eq!(field["zone"]["low"], 0.18);
+    let fp = format!("/v1/fields/{id}");
+
+    // measurements: one, then a batch of twelve over the last two days
+    let one = json!({"time": now_minus(1), "theta": 0.2}).to_string();
+    assert_eq!(
+        curl(
+            &d,
+            "POST",
+            &format!("{fp}/measurements"),
+            Some(&one),
+            Some(TOKEN)
+        )
+        .0,
+        201
+    );
+    let batch: Vec<Value> = (1..=12)
+        .map(|k| json!({"time": now_minus(240 * k), "theta": 0.2 + 0.002 * k as f64, "sensor": "tdr-1"}))
+        .collect();
+    let r = curl(
+        &d,
+        "POST",
+        &format!("{fp}/measurements"),
+        Some(&Value::from(batch).to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(
+        (r.0, json_of(&r.2)["stored"].as_i64()),
+        (201, Some(12)),
+        "{}",
+        r.2
+    );
+    let all = json_of(
+        &curl(
+            &d,
+            "GET",
+            &format!("{fp}/measurements?limit=100"),
+            None,
+            None,
+        )
+        .2,
+    );
+    assert_eq!(all.as_array().unwrap().len(), 13);
+    let some = json_of(
+        &curl(
+            &d,
+            "GET",
+            &format!(
+                "{fp}/measurements?from={}&limit=3",
+                now_minus(24 * 60).replace('+', "%2B")
+            ),
+            None,
+            None,
+        )
+        .2,
+    );
+    assert_eq!(some.as_array().unwrap().len(), 3);
+
+    // a forecast, then a control cycle
+    let forecast = json!({"issued_at": now_minus(5), "start": now_minus(5), "step_s": 3600.0,
+        "et0_mm": vec![0.2; 48], "precip_mm": vec![0.0; 48]})
+    .to_string();
+    assert_eq!(
+        curl(
+            &d,
+            "PUT",
+            &format!("{fp}/forecast"),
+            Some(&forecast),
+            Some(TOKEN)
+        )
+        .0,
+        200
+    );
+    assert_eq!(
+        json_of(&curl(&d, "GET", &format!("{fp}/forecast"), None, None).2)["step_s"],
+        3600.0
+    );
+    problem(
+        curl(&d, "GET", &format!("{fp}/setpoint"), None, None),
+        404,
+        "no setpoint",
+    );
+    let r = curl(&d, "POST", &format!("{fp}/control"), None, Some(TOKEN));
+    assert_eq!(r.0, 200, "{}", r.2);
+    let sp = json_of(&r.2);
+    let rate = sp["rate"].as_f64().unwrap();
+    assert!((0.0..=1e-5).contains(&rate), "{rate}");
+    assert_eq!(sp["plan"].as_array().unwrap().len(), 20);
+    assert_eq!(sp["predicted_theta"].as_array().unwrap().len(), 20);
+    assert!((sp["amount_mm"].as_f64().unwrap() - rate * 7200.0 * 1000.0).abs() < 1e-9);
+    assert!(sp["degraded"].as_array().unwrap().is_empty(), "{sp}");
+    assert_eq!(
+        json_of(&curl(&d, "GET", &format!("{fp}/setpoint"), None, None).2),
+        sp
+    );
+    let history = json_of(&curl(&d, "GET", &format!("{fp}/setpoints"), None, None).2);
+    assert_eq!(history.as_array().unwrap().len(), 1);
+
+    // bad input: each a problem+json naming the value, nothing stored
+    let post = |body: &str| {
+        curl(
+            &d,
+            "POST",
+            &format!("{fp}/measurements"),
+            Some(body),
+            Some(TOKEN),
+        )
+    };
+    problem(post("{\"time\": "), 400, "JSON");
+    problem(
+        post(&json!({"time": now_minus(1), "theta": 0.2, "depth": 3}).to_string()),
+        422,
+        "no other keys",
+    );
+    problem(
+        post(&json!({"time": now_minus(1), "theta": 1.5}).to_string()),
+        422,
+        "1.5",
+    );
+    problem(
+        post(&json!({"time": "yesterday noon", "theta": 0.2}).to_string()),
+        422,
+        "yesterday noon",
+    );
+    let future = (chrono::Utc::now() + chrono::TimeDelta::hours(3)).to_rfc3339();
+    problem(
+        post(&json!({"time": future, "theta": 0.2}).to_string()),
+        422,
+        "future",
+    );
+    let half_bad =
+        json!([{"time": now_minus(2), "theta": 0.21}, {"time": now_minus(3), "theta": -0.1}]);
+    problem(post(&half_bad.to_string()), 422, "measurements[1].theta");
+    let too_many: Vec<Value> = (0..51)
+        .map(|k| json!({"time": now_minus(k), "theta": 0.2}))
+        .collect();
+    problem(post(&Value::from(too_many).to_string()), 413, "at most 50");
+    let huge = format!(
+        "[{}]",
+        vec![json!({"time": now_minus(1), "theta": 0.2}).to_string(); 30_000].join(",")
+    );
+    problem(post(&huge), 413, "exceeds");
+    assert_eq!(
+        json_of(
+            &curl(
+                &d,
+                "GET",
+                &format!("{fp}/measurements?limit=1000"),
+                None,
+                None
+            )
+            .2
+        )
+        .as_array()
+        .unwrap()
+        .len(),
+        13
+    );
+    problem(
+        curl(&d, "GET", "/v1/fields/999/setpoint", None, None),
+        404,
+        "999",
+    );
+    problem(
+        curl(
+            &d,
+            "POST",
+            "/v1/fields/abc/measurements",
+            Some(&one),
+            Some(TOKEN),
+        ),
+        404,
+        "abc",
+    );
+    let put = |body: String| {
+        curl(
+            &d,
+            "PUT",
+            &format!("{fp}/forecast"),
+            Some(&body),
+            Some(TOKEN),
+        )
+    };
+    let mismatched = json!({"issued_at": now_minus(1), "start": now_minus(1), "step_s": 3600.0, "et0_mm": [0.1, 0.2], "precip_mm": [0.0]});
+    problem(put(mismatched.to_string()), 422, "precip_mm has 1");
+    let negative = json!({"issued_at": now_minus(1), "start": now_minus(1), "step_s": 3600.0, "et0_mm": [0.1, 0.2], "precip_mm": [0.0, -2.0]});
+    problem(put(negative.to_string()), 422, "precip_mm[1] = -2");
+    problem(
+        curl(
+            &d,
+            "POST",
+            "/v1/fields",
+            Some(
+                r#"{"name": "x", "zone": {"low": 0.3, "up": 0.2, "terminal_low": 0.3, "terminal_up": 0.2, "mu": 0}}"#,
+            ),
+            Some(TOKEN),
+        ),
+        422,
+        "zone",
+    );
+    problem(
+        curl(
+            &d,
+            "POST",
+            "/v1/fields",
+            Some(r#"{"name": "x", "soil": "clay"}"#),
+            Some(TOKEN),
+        ),
+        422,
+        "richards",
+    );
+
+    // patch and delete
+    let r = curl(
+        &d,
+        "PATCH",
+        &fp,
+        Some(r#"{"zone": {"mu": 1.0, "terminal_low": 0.2, "terminal_up": 0.21}}"#),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 200, "{}", r.2);
+    assert_eq!(json_of(&r.2)["zone"]["mu"], 1.0);
+    let metrics = curl(&d, "GET", "/metrics", None, None).2;
+    assert!(
+        metrics.contains("rootzone_measurements_ingested_total 13"),
+        "{metrics}"
+    );
+    let cycles: f64 = metrics
+        .lines()
+        .filter(|l| l.starts_with("rootzone_control_cycles_total{"))
+        .filter_map(|l| l.split_whitespace().last()?.parse::<f64>().ok())
+        .sum();
+    assert_eq!(cycles, 1.0, "{metrics}");
+    assert_eq!(curl(&d, "DELETE", &fp, None, Some(TOKEN)).0, 204);
+    problem(curl(&d, "GET", &fp, None, None), 404, &id.to_string());
+}
+
+#[test]
+fn acknowledged_data_survives_kill_9_and_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    let id = json_of(&curl(&d, "POST", "/v1/fields", Some(EXTERNAL_FIELD), Some(TOKEN)).2)["id"]
+        .as_i64()
+        .unwrap();
+    let fp = format!("/v1/fields/{id}");
+    for k in 0..20 {
+        let m = json!({"time": now_minus(100 - k), "theta": 0.19}).to_string();
+        assert_eq!(
+            curl(
+                &d,
+                "POST",
+                &format!("{fp}/measurements"),
+                Some(&m),
+                Some(TOKEN)
+            )
+            .0,
+            201
+        );
+    }
+    let sp = json_of(&curl(&d, "POST", &format!("{fp}/control"), None, Some(TOKEN)).2);
+    drop(d); // SIGKILL
+    let d = start(dir.path(), &config(""));
+    let stored = json_of(&curl(&d, "GET", &format!("{fp}/measurements"), None, None).2);
+    assert_eq!(stored.as_array().unwrap().len(), 20);
+    assert_eq!(
+        json_of(&curl(&d, "GET", &format!("{fp}/setpoint"), None, None).2),
+        sp
+    );
+}
+
+#[test]
+fn an_accelerated_simulated_field_moves_into_its_zone_over_a_day() {
+    let dir = tempfile::tempdir().unwrap();
+    // 2 h of clock time per real second; the field starts wetter than the zone
+    let d = start(
+        dir.path(),
+        &format!(
+            "{}\n[clock]\nspeedup = 7200.0\n",
+            r#"
+[[fields]]
+name = "sim"
+model = "two-layer"
+actuator = { kind = "simulated" }
+[fields.simulation]
+scenario = "dry"
+measurement_noise = 0.02
+process_noise = 0.0
+forecast_error = 0.2
+seed = 5
+measurement_interval_s = 900.0
+initial_head = -0.2
+"#
+        )
+        .replace("fields = []", ""),
+    );
+    let start_state = json_of(&curl(&d, "GET", "/v1/fields/1/simulation", None, None).2);
+    let theta0 = start_state["theta"].as_f64().unwrap();
+    assert!(theta0 > 0.25, "{theta0}");
+    let t0 = chrono::DateTime::parse_from_rfc3339(start_state["time"].as_str().unwrap()).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(90);
+    let state = loop {
+        let s = json_of(&curl(&d, "GET", "/v1/fields/1/simulation", None, None).2);
+        let t = chrono::DateTime::parse_from_rfc3339(s["time"].as_str().unwrap()).unwrap();
+        if t - t0 >= chrono::TimeDelta::hours(26) {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "the simulated day did not pass");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    let theta = state["theta"].as_f64().unwrap();
+    let setpoints = json_of(&curl(&d, "GET", "/v1/fields/1/setpoints?limit=1000", None, None).2);
+    let setpoints = setpoints.as_array().unwrap();
+    assert!(
+        setpoints.len() >= 11,
+        "{} cycles in a simulated day",
+        setpoints.len()
+    );
+    for s in setpoints {
+        let rate = s["rate"].as_f64().unwrap();
+        assert!((0.0..=1e-5).contains(&rate), "{s}");
+        assert_ne!(s["status"], "fallback", "{s}");
+    }
+    // from 0.27 the field dries into the zone and is held there
+    assert!(
+        (0.175..=0.235).contains(&theta),
+        "θ {theta} after a day (from {theta0})"
+    );
+    let measured = json_of(
+        &curl(
+            &d,
+            "GET",
+            "/v1/fields/1/measurements?limit=100000",
+            None,
+            None,
+        )
+        .2,
+    );
+    assert!(measured.as_array().unwrap().len() >= 100);
+}
