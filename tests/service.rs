@@ -354,6 +354,49 @@ fn api_stores_controls_and_rejects_bad_input() {
         "richards",
     );
 
+    // a resent measurement is stored once
+    let r = curl(
+        &d,
+        "POST",
+        &format!("{fp}/measurements"),
+        Some(&one),
+        Some(TOKEN),
+    );
+    assert_eq!(json_of(&r.2)["duplicates"], 1, "{}", r.2);
+    // degraded modes: no measurement and no forecast
+    let other = json_of(
+        &curl(
+            &d,
+            "POST",
+            "/v1/fields",
+            Some(r#"{"name": "empty"}"#),
+            Some(TOKEN),
+        )
+        .2,
+    );
+    let r = curl(
+        &d,
+        "POST",
+        &format!("/v1/fields/{}/control", other["id"]),
+        None,
+        Some(TOKEN),
+    );
+    let sp = json_of(&r.2);
+    assert_eq!(
+        (sp["status"].as_str(), sp["rate"].as_f64()),
+        (Some("fallback"), Some(0.0)),
+        "{sp}"
+    );
+    let flags: Vec<&str> = sp["degraded"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|v| v.as_str())
+        .collect();
+    for flag in ["no-measurement", "default-forecast", "solver-fallback"] {
+        assert!(flags.contains(&flag), "{flags:?}");
+    }
+
     // patch and delete
     let r = curl(
         &d,
@@ -369,12 +412,16 @@ fn api_stores_controls_and_rejects_bad_input() {
         metrics.contains("rootzone_measurements_ingested_total 13"),
         "{metrics}"
     );
+    assert!(
+        metrics.contains("rootzone_degraded_cycles_total{flag=\"no-measurement\"} 1"),
+        "{metrics}"
+    );
     let cycles: f64 = metrics
         .lines()
         .filter(|l| l.starts_with("rootzone_control_cycles_total{"))
         .filter_map(|l| l.split_whitespace().last()?.parse::<f64>().ok())
         .sum();
-    assert_eq!(cycles, 1.0, "{metrics}");
+    assert_eq!(cycles, 2.0, "{metrics}");
     assert_eq!(curl(&d, "DELETE", &fp, None, Some(TOKEN)).0, 204);
     problem(curl(&d, "GET", &fp, None, None), 404, &id.to_string());
 }

@@ -386,14 +386,14 @@ async fn post_measurements(
     let engine = state.engine.clone();
     let n = parsed.len();
     let last = parsed.last().map(|m| m.theta);
-    blocking(move || {
+    let new = blocking(move || {
         engine
             .store
             .add_measurements(field.id, &parsed)
             .map_err(ApiError::internal)
     })
     .await?;
-    state.metrics.measurements.inc_by(n as u64);
+    state.metrics.measurements.inc_by(new as u64);
     if let Some(theta) = last {
         state
             .metrics
@@ -403,7 +403,7 @@ async fn post_measurements(
     }
     Ok((
         StatusCode::CREATED,
-        Json(serde_json::json!({ "stored": n })),
+        Json(serde_json::json!({ "stored": new, "duplicates": n - new })),
     ))
 }
 

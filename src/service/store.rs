@@ -39,6 +39,10 @@ const MIGRATIONS: &[&str] = &[
      CREATE TABLE simulations (
          field_id INTEGER PRIMARY KEY REFERENCES fields(id) ON DELETE CASCADE,
          body TEXT NOT NULL);",
+    // measurements are idempotent: a resent (time, sensor) is stored once
+    "DELETE FROM measurements WHERE rowid NOT IN (
+         SELECT MIN(rowid) FROM measurements GROUP BY field_id, time, COALESCE(sensor, ''));
+     CREATE UNIQUE INDEX measurements_once ON measurements(field_id, time, COALESCE(sensor, ''));",
 ];
 
 /// A storage operation failed.
@@ -190,19 +194,24 @@ impl Store {
     }
 
     /// Stores a batch of measurements in one transaction: all or nothing.
-    pub fn add_measurements(&self, field: i64, batch: &[Measurement]) -> Result<(), StoreError> {
+    /// A measurement whose (time, sensor) the field already has is skipped
+    /// (a client resending after a lost acknowledgement); returns how many
+    /// were new.
+    pub fn add_measurements(&self, field: i64, batch: &[Measurement]) -> Result<usize, StoreError> {
         self.with(|c| {
             let tx = c.transaction()?;
+            let mut new = 0;
             {
                 let mut stmt = tx.prepare_cached(
-                    "INSERT INTO measurements(field_id, time, theta, sensor) VALUES (?1, ?2, ?3, ?4)",
+                    "INSERT INTO measurements(field_id, time, theta, sensor) VALUES (?1, ?2, ?3, ?4)
+                     ON CONFLICT DO NOTHING",
                 )?;
                 for m in batch {
-                    stmt.execute(params![field, millis(m.time), m.theta, m.sensor])?;
+                    new += stmt.execute(params![field, millis(m.time), m.theta, m.sensor])?;
                 }
             }
             tx.commit()?;
-            Ok(())
+            Ok(new)
         })
     }
 
