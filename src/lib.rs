@@ -9,6 +9,7 @@
 
 pub mod control;
 pub mod experiment;
+pub mod fieldsim;
 pub mod service;
 pub mod simulate;
 pub mod soil;

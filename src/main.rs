@@ -88,6 +88,16 @@ enum Command {
         #[arg(long, default_value_t = 5000)]
         samples: usize,
     },
+    /// Simulate fields beside a controller: measurements and forecasts to it
+    /// over HTTP, setpoints back through its webhook actuator.
+    FieldSim {
+        /// Base URL of the controller (e.g. http://127.0.0.1:8080).
+        #[arg(long)]
+        controller: Option<String>,
+        /// TOML configuration; environment variables ROOTZONE_… override it.
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
     /// Run the controller daemon: HTTP API, control loop, simulated fields.
     Serve {
         /// TOML configuration (see config/default.toml); environment
@@ -161,6 +171,7 @@ fn main() -> ExitCode {
             Ok(())
         })(),
         Command::Serve { config } => serve(config),
+        Command::FieldSim { controller, config } => field_sim(controller, config),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -283,4 +294,15 @@ fn serve(config: Option<PathBuf>) -> anyhow::Result<()> {
         say("rootzone stopped".into());
         Ok(())
     })
+}
+
+/// `rootzone field-sim`: the separate field simulator.
+fn field_sim(controller: Option<String>, config: Option<PathBuf>) -> anyhow::Result<()> {
+    use rootzone::fieldsim::{FieldSimSettings, run};
+    let settings = FieldSimSettings::load(config.as_deref(), controller.as_deref())?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(run(settings, rootzone::service::shutdown_signal()))?;
+    Ok(())
 }

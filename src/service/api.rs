@@ -75,6 +75,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/readyz", get(ready))
         .route("/metrics", get(metrics))
+        .route("/v1/clock", get(clock))
         .route("/v1/fields", post(create_field).get(list_fields))
         .route(
             "/v1/fields/{id}",
@@ -186,6 +187,15 @@ async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
         [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
         state.metrics.render(),
     )
+}
+
+/// The daemon's clock, for processes that must agree with it.
+async fn clock(State(state): State<Arc<AppState>>) -> Json<serde_json::Value> {
+    Json(serde_json::json!({
+        "now": state.clock.now(),
+        "speedup": state.clock.speedup(),
+        "epoch": state.settings.clock.epoch,
+    }))
 }
 
 async fn create_field(

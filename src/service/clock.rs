@@ -28,6 +28,14 @@ impl Clock {
         }
     }
 
+    /// The clock of a shared epoch: epoch + (real now − epoch) × speedup.
+    pub fn anchored(epoch: DateTime<Utc>, speedup: f64) -> Clock {
+        let real = Utc::now();
+        let gone = (real - epoch).num_microseconds().unwrap_or(0) as f64;
+        let origin = epoch + TimeDelta::microseconds((gone * speedup) as i64);
+        Clock::new(origin, speedup)
+    }
+
     pub fn speedup(&self) -> f64 {
         self.speedup
     }

@@ -31,13 +31,72 @@ pub struct Models {
     pub lstm: ModelFile,
 }
 
+static DRY: std::sync::LazyLock<WeatherSeries> = std::sync::LazyLock::new(|| {
+    WeatherSeries::parse(DRY_SCENARIO, "embedded weather-dry.csv").expect("embedded scenario")
+});
+static RAIN: std::sync::LazyLock<WeatherSeries> = std::sync::LazyLock::new(|| {
+    WeatherSeries::parse(RAIN_SCENARIO, "embedded weather-rain.csv").expect("embedded scenario")
+});
+
+/// The scenario's weather (amounts per 2-h step) at clock time `t`, the
+/// scenario's hour 0 being `day_zero` and the scenario repeating.
+pub fn scenario_weather(s: Scenario, day_zero: DateTime<Utc>, t: DateTime<Utc>) -> WeatherStep {
+    let series: &WeatherSeries = match s {
+        Scenario::Dry => &DRY,
+        Scenario::Rain => &RAIN,
+    };
+    let k = (seconds(t - day_zero) / SCENARIO_STEP).floor().max(0.0) as usize;
+    series.steps()[k % series.len()]
+}
+
+/// Midnight (UTC) of the day of `t`.
+pub fn midnight(t: DateTime<Utc>) -> DateTime<Utc> {
+    t.with_hour(0)
+        .and_then(|t| t.with_minute(0))
+        .and_then(|t| t.with_second(0))
+        .and_then(|t| t.with_nanosecond(0))
+        .unwrap_or(t)
+}
+
+/// A scenario forecast from `now`: `steps` steps of `period` seconds, each
+/// ET0 and P the truth × (1 + U(−error, error)) (MODEL.md §2).
+pub fn scenario_forecast(
+    s: Scenario,
+    day_zero: DateTime<Utc>,
+    now: DateTime<Utc>,
+    period: f64,
+    steps: usize,
+    error: f64,
+    rng: &mut impl rand::Rng,
+) -> Forecast {
+    let mut et0 = Vec::with_capacity(steps);
+    let mut precip = Vec::with_capacity(steps);
+    for k in 0..steps {
+        let t = now + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64);
+        let w = scenario_weather(s, day_zero, t);
+        let truth = WeatherSeries::new(vec![WeatherStep {
+            et0_mm: w.et0_mm * period / SCENARIO_STEP,
+            precip_mm: w.precip_mm * period / SCENARIO_STEP,
+            ..w
+        }]);
+        let f = truth.forecast(0, 1, error, rng)[0];
+        et0.push(f.et0_mm);
+        precip.push(f.precip_mm);
+    }
+    Forecast {
+        issued_at: now,
+        start: now,
+        step_s: period,
+        et0_mm: et0,
+        precip_mm: precip,
+    }
+}
+
 /// Shared state of the work: storage, models, the simulated plants.
 pub struct Engine {
     pub store: Arc<Store>,
     pub models: Models,
     plants: Mutex<HashMap<i64, Arc<Mutex<SimulatedPlant>>>>,
-    dry: WeatherSeries,
-    rain: WeatherSeries,
 }
 
 /// A failure of the work (not of the input).
@@ -103,25 +162,11 @@ impl Engine {
             store,
             models,
             plants: Mutex::new(HashMap::new()),
-            dry: WeatherSeries::parse(DRY_SCENARIO, "embedded weather-dry.csv")
-                .expect("embedded scenario"),
-            rain: WeatherSeries::parse(RAIN_SCENARIO, "embedded weather-rain.csv")
-                .expect("embedded scenario"),
         }
     }
 
-    fn scenario(&self, s: Scenario) -> &WeatherSeries {
-        match s {
-            Scenario::Dry => &self.dry,
-            Scenario::Rain => &self.rain,
-        }
-    }
-
-    /// The scenario's weather (amounts per 2-h step) at clock time `t`.
     fn weather_at(&self, s: Scenario, day_zero: DateTime<Utc>, t: DateTime<Utc>) -> WeatherStep {
-        let series = self.scenario(s);
-        let k = (seconds(t - day_zero) / SCENARIO_STEP).floor().max(0.0) as usize;
-        series.steps()[k % series.len()]
+        scenario_weather(s, day_zero, t)
     }
 
     /// The climatological forecast: the dry scenario's daily ET0 cycle by
@@ -129,7 +174,7 @@ impl Engine {
     fn climatology(&self, t: DateTime<Utc>, period: f64) -> WeatherStep {
         let hour = t.hour() as f64 + t.minute() as f64 / 60.0;
         let k = ((hour * 3600.0) / SCENARIO_STEP).floor() as usize % 12;
-        let step = self.dry.steps()[k];
+        let step = DRY.steps()[k];
         WeatherStep {
             start_hour: hour,
             et0_mm: step.et0_mm * period / SCENARIO_STEP,
@@ -162,13 +207,7 @@ impl Engine {
             ..FieldSettings::default()
         };
         let mut plant = Plant::new(settings).map_err(|e| EngineError::Plant(field.id, e))?;
-        let day_zero = field
-            .created_at
-            .with_hour(0)
-            .and_then(|t| t.with_minute(0))
-            .and_then(|t| t.with_second(0))
-            .and_then(|t| t.with_nanosecond(0))
-            .unwrap_or(field.created_at);
+        let day_zero = midnight(field.created_at);
         let mut time = field.created_at;
         if let Some(body) = self.store.simulation(field.id)? {
             let state: PlantState = serde_json::from_str(&body).map_err(StoreError::from)?;
@@ -279,30 +318,16 @@ impl Engine {
         let mut rng = ChaCha8Rng::seed_from_u64(
             spec.seed.wrapping_add(1000) ^ (now.timestamp() as u64).rotate_left(20),
         );
-        let mut et0 = Vec::with_capacity(steps);
-        let mut precip = Vec::with_capacity(steps);
-        for k in 0..steps {
-            let t = now + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64);
-            let w = self.weather_at(spec.scenario, day_zero, t);
-            let truth = WeatherSeries::new(vec![WeatherStep {
-                et0_mm: w.et0_mm * period / SCENARIO_STEP,
-                precip_mm: w.precip_mm * period / SCENARIO_STEP,
-                ..w
-            }]);
-            let f = truth.forecast(0, 1, spec.forecast_error, &mut rng)[0];
-            et0.push(f.et0_mm);
-            precip.push(f.precip_mm);
-        }
-        self.store.put_forecast(
-            field.id,
-            &Forecast {
-                issued_at: now,
-                start: now,
-                step_s: period,
-                et0_mm: et0,
-                precip_mm: precip,
-            },
-        )?;
+        let forecast = scenario_forecast(
+            spec.scenario,
+            day_zero,
+            now,
+            period,
+            steps,
+            spec.forecast_error,
+            &mut rng,
+        );
+        self.store.put_forecast(field.id, &forecast)?;
         Ok(())
     }
 

@@ -139,7 +139,10 @@ impl App {
                 .unwrap_or_else(|_| Utc::now()),
             _ => Utc::now(),
         };
-        let clock = Clock::new(origin, settings.clock.speedup);
+        let clock = match settings.clock.epoch {
+            Some(epoch) => Clock::anchored(epoch, settings.clock.speedup),
+            None => Clock::new(origin, settings.clock.speedup),
+        };
         if store.fields()?.is_empty() {
             for spec in &settings.fields {
                 store.create_field(spec, clock.now())?;

@@ -11,6 +11,25 @@ use serde::{Deserialize, Serialize};
 
 use super::wire::FieldSpec;
 
+/// The keys the environment may set (`ROOTZONE_` + the key in capitals,
+/// `.` written `__`); other `ROOTZONE_…` variables are not the controller's.
+pub const ENV_KEYS: &[&str] = &[
+    "listen",
+    "data_dir",
+    "api_token",
+    "models_dir",
+    "clock.speedup",
+    "clock.epoch",
+    "limits.max_batch",
+    "limits.max_future_skew_s",
+    "limits.worker_threads",
+];
+
+/// The environment variable of a settings key.
+pub fn env_name(key: &str) -> String {
+    format!("ROOTZONE_{}", key.replace('.', "__").to_uppercase())
+}
+
 /// Everything `rootzone serve` needs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -38,6 +57,12 @@ pub struct ClockSettings {
     /// Simulated seconds per real second: 1 is real time, 720 turns 2 h
     /// into 10 s (`ROOTZONE_CLOCK__SPEEDUP`).
     pub speedup: f64,
+    /// A shared epoch (RFC 3339, `ROOTZONE_CLOCK__EPOCH`): clock time is then
+    /// epoch + (real time − epoch) × speedup, the same in every process
+    /// configured alike (the controller and a field simulator). Unset: the
+    /// clock starts at the real time (or, accelerated, where it stopped).
+    #[serde(default)]
+    pub epoch: Option<chrono::DateTime<chrono::Utc>>,
 }
 
 /// Limits on input.
@@ -61,7 +86,10 @@ impl Default for Settings {
             data_dir: PathBuf::from("data"),
             api_token: None,
             models_dir: None,
-            clock: ClockSettings { speedup: 1.0 },
+            clock: ClockSettings {
+                speedup: 1.0,
+                epoch: None,
+            },
             limits: Limits {
                 max_batch: 10_000,
                 max_future_skew_s: 300.0,
@@ -88,7 +116,7 @@ impl Settings {
             figment = figment.merge(Toml::file(path));
         }
         let settings: Settings = figment
-            .merge(Env::prefixed("ROOTZONE_").split("__"))
+            .merge(Env::prefixed("ROOTZONE_").split("__").only(ENV_KEYS))
             .extract()
             .map_err(|e| SettingsError(e.to_string()))?;
         settings.validate()?;

@@ -1,0 +1,605 @@
+//! `rootzone field-sim`: a separate process that simulates fields (the
+//! Richards plant of MODEL.md §1–2) on the shared clock, registers them with
+//! a controller, sends it noisy measurements and forecasts over HTTP, and
+//! applies the setpoints the controller's webhook actuator POSTs back.
+//!
+//! Measurements wait in a bounded on-disk buffer until the controller
+//! acknowledges them (the controller stores a resent (time, sensor) once), so
+//! neither side being down loses what was measured.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::extract::{Path as UrlPath, State};
+use axum::http::StatusCode;
+use axum::routing::post;
+use axum::{Json, Router};
+use chrono::{DateTime, TimeDelta, Utc};
+use figment::Figment;
+use figment::providers::{Env, Format, Serialized, Toml};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::service::clock::{Clock, next_boundary};
+use crate::service::engine::{midnight, scenario_forecast, scenario_weather};
+use crate::service::settings::ClockSettings;
+use crate::service::wire::{Actuator, FieldSpec, Measurement, Setpoint, SimulationSpec};
+use crate::soil::{ColumnState, Field as Plant, FieldSettings};
+
+/// The keys the environment may set (see [`crate::service::settings::env_name`]).
+pub const ENV_KEYS: &[&str] = &[
+    "controller",
+    "api_token",
+    "sim_listen",
+    "public_url",
+    "sim_data_dir",
+    "clock.speedup",
+    "clock.epoch",
+    "max_buffer",
+];
+
+/// Settings of the field simulator: defaults, a TOML file, then
+/// `ROOTZONE_…` environment variables (the same names as the controller's
+/// for the shared keys: `ROOTZONE_API_TOKEN`, `ROOTZONE_CLOCK__SPEEDUP`,
+/// `ROOTZONE_CLOCK__EPOCH`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldSimSettings {
+    /// Base URL of the controller (`--controller`, `ROOTZONE_CONTROLLER`).
+    pub controller: String,
+    /// The controller's API token.
+    pub api_token: Option<String>,
+    /// Address of the setpoint endpoint (`ROOTZONE_SIM_LISTEN`).
+    pub sim_listen: String,
+    /// The URL the controller reaches that endpoint at (default:
+    /// `http://<sim_listen>`; in Docker, the service name).
+    pub public_url: Option<String>,
+    /// Folder of the measurement buffer and the plants' states.
+    pub sim_data_dir: PathBuf,
+    pub clock: ClockSettings,
+    /// Largest number of buffered measurements per field (the oldest go).
+    pub max_buffer: usize,
+    /// The simulated fields (each with a `simulation` section).
+    pub fields: Vec<FieldSpec>,
+}
+
+impl Default for FieldSimSettings {
+    fn default() -> Self {
+        FieldSimSettings {
+            controller: "http://127.0.0.1:8080".into(),
+            api_token: None,
+            sim_listen: "127.0.0.1:9090".into(),
+            public_url: None,
+            sim_data_dir: PathBuf::from("field-data"),
+            clock: ClockSettings {
+                speedup: 1.0,
+                epoch: None,
+            },
+            max_buffer: 100_000,
+            fields: vec![FieldSpec {
+                name: "sim-field".into(),
+                actuator: Actuator::None,
+                simulation: Some(SimulationSpec::default()),
+                ..FieldSpec::demo()
+            }],
+        }
+    }
+}
+
+/// The simulator could not run.
+#[derive(Debug, thiserror::Error)]
+#[error("field-sim: {0}")]
+pub struct FieldSimError(pub String);
+
+impl FieldSimSettings {
+    pub fn load(file: Option<&Path>, controller: Option<&str>) -> Result<Self, FieldSimError> {
+        let mut figment = Figment::from(Serialized::defaults(FieldSimSettings::default()));
+        if let Some(path) = file {
+            if !path.is_file() {
+                return Err(FieldSimError(format!("{}: no such file", path.display())));
+            }
+            figment = figment.merge(Toml::file(path));
+        }
+        let mut s: FieldSimSettings = figment
+            .merge(Env::prefixed("ROOTZONE_").split("__").only(ENV_KEYS))
+            .extract()
+            .map_err(|e| FieldSimError(format!("configuration: {e}")))?;
+        if let Some(url) = controller {
+            s.controller = url.to_string();
+        }
+        s.controller = s.controller.trim_end_matches('/').to_string();
+        if !(s.controller.starts_with("http://") || s.controller.starts_with("https://")) {
+            return Err(FieldSimError(format!(
+                "--controller must be an http(s) URL, got '{}'",
+                s.controller
+            )));
+        }
+        if s.fields.is_empty() {
+            return Err(FieldSimError("no fields to simulate".into()));
+        }
+        for f in &s.fields {
+            if f.simulation.is_none() {
+                return Err(FieldSimError(format!(
+                    "field '{}' needs a 'simulation' section",
+                    f.name
+                )));
+            }
+        }
+        Ok(s)
+    }
+}
+
+/// What the simulator keeps of one field.
+struct SimField {
+    name: String,
+    spec: FieldSpec,
+    sim: SimulationSpec,
+    /// The controller's id, once registered.
+    id: Option<i64>,
+    plant: Plant,
+    time: DateTime<Utc>,
+    day_zero: DateTime<Utc>,
+    /// Measurements not yet acknowledged by the controller.
+    buffer: VecDeque<Measurement>,
+    /// The latest setpoint received: (rate, valid from, valid until).
+    setpoint: Option<(f64, DateTime<Utc>, DateTime<Utc>)>,
+    last_forecast: Option<DateTime<Utc>>,
+}
+
+/// Stored per field: plant and buffer.
+#[derive(Serialize, Deserialize)]
+struct Saved {
+    time: DateTime<Utc>,
+    steps: usize,
+    heads: Vec<f64>,
+    amounts: [f64; 4],
+    buffer: Vec<Measurement>,
+    setpoint: Option<(f64, DateTime<Utc>, DateTime<Utc>)>,
+}
+
+struct Shared {
+    fields: Mutex<Vec<SimField>>,
+    settings: FieldSimSettings,
+}
+
+fn saved_path(dir: &Path, name: &str) -> PathBuf {
+    let safe: String = name
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect();
+    dir.join(format!("field-{safe}.json"))
+}
+
+impl SimField {
+    fn save(&self, dir: &Path) -> std::io::Result<()> {
+        let saved = Saved {
+            time: self.time,
+            steps: self.plant.steps(),
+            heads: self.plant.pressure_heads().to_vec(),
+            amounts: self.plant.state().amounts,
+            buffer: self.buffer.iter().cloned().collect(),
+            setpoint: self.setpoint,
+        };
+        let path = saved_path(dir, &self.name);
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, serde_json::to_vec(&saved).unwrap_or_default())?;
+        std::fs::rename(tmp, path)
+    }
+
+    /// Advances the plant to `now`, buffering a measurement per interval.
+    fn advance(&mut self, now: DateTime<Utc>, max_buffer: usize) -> Result<bool, String> {
+        let interval = TimeDelta::milliseconds((self.sim.measurement_interval_s * 1000.0) as i64);
+        let mut stepped = false;
+        while self.time + interval <= now {
+            let rate = match self.setpoint {
+                Some((rate, from, until)) if from <= self.time && self.time < until => rate,
+                _ => 0.0,
+            };
+            let forcing =
+                scenario_weather(self.sim.scenario, self.day_zero, self.time).forcing(rate, 7200.0);
+            let report = self.plant.step(forcing).map_err(|e| e.to_string())?;
+            self.time += interval;
+            self.buffer.push_back(Measurement {
+                time: self.time,
+                theta: report.measured_water_content.clamp(0.0, 1.0),
+                sensor: Some(format!("field-sim/{}", self.name)),
+            });
+            while self.buffer.len() > max_buffer {
+                self.buffer.pop_front();
+            }
+            stepped = true;
+        }
+        Ok(stepped)
+    }
+}
+
+/// Runs the simulator until `shutdown` resolves.
+pub async fn run(
+    settings: FieldSimSettings,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<(), FieldSimError> {
+    let clock = match settings.clock.epoch {
+        Some(epoch) => Clock::anchored(epoch, settings.clock.speedup),
+        None => Clock::new(Utc::now(), settings.clock.speedup),
+    };
+    let listener = tokio::net::TcpListener::bind(&settings.sim_listen)
+        .await
+        .map_err(|e| FieldSimError(format!("cannot listen on {}: {e}", settings.sim_listen)))?;
+    let local = listener
+        .local_addr()
+        .map_err(|e| FieldSimError(e.to_string()))?;
+    let public = settings
+        .public_url
+        .clone()
+        .unwrap_or_else(|| format!("http://{local}"));
+    std::fs::create_dir_all(&settings.sim_data_dir).map_err(|e| {
+        FieldSimError(format!(
+            "cannot create {}: {e}",
+            settings.sim_data_dir.display()
+        ))
+    })?;
+    let mut fields = Vec::new();
+    for spec in &settings.fields {
+        let sim = spec.simulation.unwrap_or_default();
+        let soil = spec.soil.parameters().map_err(FieldSimError)?;
+        let mut plant = Plant::new(FieldSettings {
+            soil,
+            crop: spec.crop(),
+            initial_head: sim.initial_head,
+            sampling_time: sim.measurement_interval_s,
+            process_noise: sim.process_noise,
+            measurement_noise: sim.measurement_noise,
+            seed: sim.seed,
+            ..FieldSettings::default()
+        })
+        .map_err(FieldSimError)?;
+        let now = clock.now();
+        let mut time =
+            crate::service::clock::boundary_at_or_before(now, sim.measurement_interval_s);
+        let mut buffer = VecDeque::new();
+        let mut setpoint = None;
+        if let Ok(text) = std::fs::read_to_string(saved_path(&settings.sim_data_dir, &spec.name))
+            && let Ok(saved) = serde_json::from_str::<Saved>(&text)
+        {
+            plant
+                .restore(
+                    ColumnState {
+                        heads: saved.heads,
+                        amounts: saved.amounts,
+                    },
+                    saved.steps as f64 * sim.measurement_interval_s,
+                    saved.steps,
+                )
+                .map_err(FieldSimError)?;
+            time = saved.time;
+            buffer = saved.buffer.into();
+            setpoint = saved.setpoint;
+        }
+        fields.push(SimField {
+            name: spec.name.clone(),
+            spec: FieldSpec {
+                actuator: Actuator::Webhook {
+                    url: format!("{public}/fields/{}/setpoint", encode(&spec.name)),
+                },
+                simulation: None,
+                ..spec.clone()
+            },
+            sim,
+            id: None,
+            plant,
+            time,
+            day_zero: midnight(time),
+            buffer,
+            setpoint,
+            last_forecast: None,
+        });
+    }
+    let shared = Arc::new(Shared {
+        fields: Mutex::new(fields),
+        settings: settings.clone(),
+    });
+    let http = reqwest::Client::builder()
+        .timeout(Duration::from_secs(10))
+        .build()
+        .map_err(|e| FieldSimError(e.to_string()))?;
+    let router = Router::new()
+        .route("/fields/{name}/setpoint", post(receive_setpoint))
+        .route("/healthz", axum::routing::get(|| async { "ok\n" }))
+        .with_state(shared.clone());
+    let cancel = tokio_util::sync::CancellationToken::new();
+    let stop = cancel.clone();
+    let server = tokio::spawn(async move {
+        let _ = axum::serve(listener, router)
+            .with_graceful_shutdown(async move { stop.cancelled().await })
+            .await;
+    });
+    {
+        use std::io::Write;
+        let mut out = std::io::stdout();
+        let _ = writeln!(
+            out,
+            "rootzone field-sim: setpoints at {public}/fields/<name>/setpoint, controller {}",
+            settings.controller
+        );
+        let _ = out.flush();
+    }
+    let work = work_loop(shared.clone(), clock, http);
+    let result = tokio::select! {
+        r = work => r,
+        _ = shutdown => Ok(()),
+    };
+    cancel.cancel();
+    let _ = server.await;
+    let fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
+    for f in fields.iter() {
+        let _ = f.save(&settings.sim_data_dir);
+    }
+    result
+}
+
+fn encode(name: &str) -> String {
+    name.bytes()
+        .map(|b| {
+            if b.is_ascii_alphanumeric() || b == b'-' || b == b'_' {
+                (b as char).to_string()
+            } else {
+                format!("%{b:02X}")
+            }
+        })
+        .collect()
+}
+
+async fn receive_setpoint(
+    State(shared): State<Arc<Shared>>,
+    UrlPath(name): UrlPath<String>,
+    Json(setpoint): Json<Setpoint>,
+) -> StatusCode {
+    let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
+    let Some(f) = fields.iter_mut().find(|f| f.name == name) else {
+        return StatusCode::NOT_FOUND;
+    };
+    if !(setpoint.rate.is_finite() && setpoint.rate >= 0.0) {
+        return StatusCode::UNPROCESSABLE_ENTITY;
+    }
+    f.setpoint = Some((setpoint.rate, setpoint.valid_from, setpoint.valid_until));
+    let _ = f.save(&shared.settings.sim_data_dir);
+    StatusCode::NO_CONTENT
+}
+
+/// Checks the controller's clock against ours: same speedup, and the same
+/// time within a tolerance.
+async fn check_clock(
+    http: &reqwest::Client,
+    settings: &FieldSimSettings,
+    clock: &Clock,
+) -> Result<Option<()>, FieldSimError> {
+    let Ok(r) = http
+        .get(format!("{}/v1/clock", settings.controller))
+        .send()
+        .await
+    else {
+        return Ok(None);
+    };
+    let Ok(v) = r.json::<serde_json::Value>().await else {
+        return Ok(None);
+    };
+    let speedup = v["speedup"].as_f64().unwrap_or(f64::NAN);
+    let their: Option<DateTime<Utc>> = v["now"].as_str().and_then(|t| t.parse().ok());
+    let ours = clock.now();
+    // a second of real time, at least a minute of clock time
+    let tolerance = (clock.speedup() * 1.0).max(60.0);
+    match their {
+        Some(t)
+            if (speedup - clock.speedup()).abs() < 1e-9
+                && ((t - ours).num_milliseconds() as f64 / 1000.0).abs() <= tolerance =>
+        {
+            Ok(Some(()))
+        }
+        _ => Err(FieldSimError(format!(
+            "clock mismatch with the controller: it runs at {speedup}× and reads {}, \
+             this simulator runs at {}× and reads {}; configure the same \
+             clock.speedup and clock.epoch on both",
+            v["now"],
+            clock.speedup(),
+            ours.to_rfc3339()
+        ))),
+    }
+}
+
+/// The simulator's work: clock check, registration, the plants, sending.
+async fn work_loop(
+    shared: Arc<Shared>,
+    clock: Clock,
+    http: reqwest::Client,
+) -> Result<(), FieldSimError> {
+    let s = &shared.settings;
+    let token = s.api_token.clone().unwrap_or_default();
+    let mut backoff = Duration::from_millis(100);
+    // wait for the controller, then insist on one clock
+    loop {
+        if check_clock(&http, s, &clock).await?.is_some() {
+            break;
+        }
+        tokio::time::sleep(backoff).await;
+        backoff = (backoff * 2).min(Duration::from_secs(5));
+    }
+    let tick = Duration::from_secs_f64(
+        (s.fields
+            .iter()
+            .filter_map(|f| f.simulation)
+            .map(|sim| sim.measurement_interval_s)
+            .fold(f64::INFINITY, f64::min)
+            / clock.speedup())
+        .clamp(0.01, 5.0),
+    );
+    let mut backoff = Duration::ZERO;
+    let mut waited_until = std::time::Instant::now();
+    loop {
+        let now = clock.now();
+        // the plants and their measurements
+        {
+            let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
+            for f in fields.iter_mut() {
+                match f.advance(now, s.max_buffer) {
+                    Ok(true) => {
+                        let _ = f.save(&s.sim_data_dir);
+                    }
+                    Ok(false) => {}
+                    Err(e) => return Err(FieldSimError(format!("field '{}': {e}", f.name))),
+                }
+            }
+        }
+        if std::time::Instant::now() >= waited_until {
+            match sync_with_controller(&shared, &http, &token, now).await {
+                Ok(()) => backoff = Duration::ZERO,
+                Err(e) => {
+                    backoff =
+                        (backoff * 2).clamp(Duration::from_millis(200), Duration::from_secs(10));
+                    eprintln!("field-sim: controller unreachable ({e}); retrying in {backoff:?}");
+                    waited_until = std::time::Instant::now() + backoff;
+                }
+            }
+        }
+        let next = next_boundary(now, 60.0).min(
+            now + TimeDelta::milliseconds((tick.as_secs_f64() * clock.speedup() * 1000.0) as i64),
+        );
+        tokio::time::sleep(clock.real_until(next).clamp(Duration::from_millis(5), tick)).await;
+    }
+}
+
+/// Registers unknown fields, sends buffered measurements and due forecasts.
+async fn sync_with_controller(
+    shared: &Arc<Shared>,
+    http: &reqwest::Client,
+    token: &str,
+    now: DateTime<Utc>,
+) -> Result<(), String> {
+    let base = &shared.settings.controller;
+    // registration by name
+    let unregistered: Vec<(usize, FieldSpec)> = {
+        let fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
+        fields
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.id.is_none())
+            .map(|(i, f)| (i, f.spec.clone()))
+            .collect()
+    };
+    if !unregistered.is_empty() {
+        let known: Vec<serde_json::Value> = http
+            .get(format!("{base}/v1/fields"))
+            .send()
+            .await
+            .map_err(|e| e.to_string())?
+            .json()
+            .await
+            .map_err(|e| e.to_string())?;
+        for (i, spec) in unregistered {
+            let id = match known.iter().find(|f| f["name"] == spec.name.as_str()) {
+                Some(f) => f["id"].as_i64(),
+                None => {
+                    let r = http
+                        .post(format!("{base}/v1/fields"))
+                        .bearer_auth(token)
+                        .json(&spec)
+                        .send()
+                        .await
+                        .map_err(|e| e.to_string())?;
+                    if !r.status().is_success() {
+                        return Err(format!(
+                            "registering '{}': HTTP {} {}",
+                            spec.name,
+                            r.status(),
+                            r.text().await.unwrap_or_default()
+                        ));
+                    }
+                    r.json::<serde_json::Value>()
+                        .await
+                        .map_err(|e| e.to_string())?["id"]
+                        .as_i64()
+                }
+            };
+            shared.fields.lock().unwrap_or_else(|p| p.into_inner())[i].id = id;
+        }
+    }
+    // measurements (up to 1000 per request) and forecasts
+    let work: Vec<(
+        usize,
+        i64,
+        Vec<Measurement>,
+        Option<crate::service::wire::Forecast>,
+    )> = {
+        let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
+        let mut out = Vec::new();
+        for (i, f) in fields.iter_mut().enumerate() {
+            let Some(id) = f.id else { continue };
+            let batch: Vec<Measurement> = f.buffer.iter().take(1000).cloned().collect();
+            let period = f.spec.control_period_s;
+            let due = f
+                .last_forecast
+                .is_none_or(|t| (now - t).num_milliseconds() as f64 >= period * 1000.0);
+            let forecast = due.then(|| {
+                let mut rng = ChaCha8Rng::seed_from_u64(
+                    f.sim.seed.wrapping_add(1000) ^ (now.timestamp() as u64).rotate_left(20),
+                );
+                // from the period boundary, a few steps longer than the
+                // controller's horizon of 20
+                let start = crate::service::clock::boundary_at_or_before(now, period);
+                scenario_forecast(
+                    f.sim.scenario,
+                    f.day_zero,
+                    start,
+                    period,
+                    24,
+                    f.sim.forecast_error,
+                    &mut rng,
+                )
+            });
+            out.push((i, id, batch, forecast));
+        }
+        out
+    };
+    for (i, id, batch, forecast) in work {
+        if !batch.is_empty() {
+            let r = http
+                .post(format!("{base}/v1/fields/{id}/measurements"))
+                .bearer_auth(token)
+                .json(&batch)
+                .send()
+                .await
+                .map_err(|e| e.to_string())?;
+            if r.status().is_success() {
+                let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
+                let f = &mut fields[i];
+                // drop exactly what was acknowledged (the front of the buffer)
+                let last = batch.last().map(|m| m.time);
+                while f.buffer.front().is_some_and(|m| Some(m.time) <= last) {
+                    f.buffer.pop_front();
+                }
+                let _ = f.save(&shared.settings.sim_data_dir);
+            } else if r.status() == StatusCode::NOT_FOUND {
+                // the controller lost the field: register again
+                shared.fields.lock().unwrap_or_else(|p| p.into_inner())[i].id = None;
+            } else {
+                return Err(format!("measurements: HTTP {}", r.status()));
+            }
+        }
+        if let Some(forecast) = forecast {
+            let r = http
+                .put(format!("{base}/v1/fields/{id}/forecast"))
+                .bearer_auth(token)
+                .json(&forecast)
+                .send()
+                .await
+                .map_err(|e| e.to_string())?;
+            if r.status().is_success() {
+                shared.fields.lock().unwrap_or_else(|p| p.into_inner())[i].last_forecast =
+                    Some(now);
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,364 @@
+//! The controller and the field simulator as two real processes, with the
+//! arguments and variables of `deploy/docker-compose.yml`; and the compose
+//! file checked against what the binary accepts.
+
+use std::collections::BTreeSet;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+const TOKEN: &str = "pairing-token-0123456789";
+
+fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+struct Process(Child);
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `rootzone args…` with `env`; waits for its first line of output.
+fn spawn(args: &[&str], env: &[(&str, String)]) -> (Process, String) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rootzone"));
+    cmd.args(args).stdout(Stdio::piped()).stderr(Stdio::null());
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let mut child = cmd.spawn().unwrap();
+    let mut reader = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    reader.read_line(&mut line).unwrap();
+    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
+    (Process(child), line)
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn get(url: &str) -> Option<Value> {
+    let out = Command::new("curl").args(["-sf", url]).output().ok()?;
+    serde_json::from_slice(&out.stdout).ok()
+}
+
+/// Polls `f` every 200 ms until it returns Some, for at most `secs`.
+fn wait_for<T>(secs: u64, what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+struct Pair {
+    dir: tempfile::TempDir,
+    port: u16,
+    epoch: String,
+    speedup: String,
+}
+
+impl Pair {
+    fn new(speedup: f64) -> Pair {
+        Pair {
+            dir: tempfile::tempdir().unwrap(),
+            port: free_port(),
+            epoch: chrono::Utc::now().to_rfc3339(),
+            speedup: speedup.to_string(),
+        }
+    }
+
+    fn clock_env(&self) -> Vec<(&'static str, String)> {
+        vec![
+            ("ROOTZONE_API_TOKEN", TOKEN.to_string()),
+            ("ROOTZONE_CLOCK__SPEEDUP", self.speedup.clone()),
+            ("ROOTZONE_CLOCK__EPOCH", self.epoch.clone()),
+        ]
+    }
+
+    /// The compose file's controller, natively.
+    fn controller(&self) -> Process {
+        let mut env = self.clock_env();
+        env.push(("ROOTZONE_LISTEN", format!("127.0.0.1:{}", self.port)));
+        env.push((
+            "ROOTZONE_DATA_DIR",
+            self.dir.path().join("controller").display().to_string(),
+        ));
+        let config = repo("config/compose-controller.toml").display().to_string();
+        let (p, line) = spawn(&["serve", "--config", &config], &env);
+        assert!(line.contains(&self.port.to_string()), "{line}");
+        p
+    }
+
+    /// The compose file's field simulator, natively, with `config`.
+    fn field(&self, config: &Path) -> Process {
+        let mut env = self.clock_env();
+        env.push(("ROOTZONE_SIM_LISTEN", "127.0.0.1:0".into()));
+        env.push((
+            "ROOTZONE_SIM_DATA_DIR",
+            self.dir.path().join("field").display().to_string(),
+        ));
+        let (p, line) = spawn(
+            &[
+                "field-sim",
+                "--controller",
+                &self.base(),
+                "--config",
+                &config.display().to_string(),
+            ],
+            &env,
+        );
+        assert!(line.contains("setpoints at"), "{line}");
+        p
+    }
+
+    fn base(&self) -> String {
+        format!("http://127.0.0.1:{}", self.port)
+    }
+}
+
+fn times(measurements: &Value) -> Vec<chrono::DateTime<chrono::Utc>> {
+    measurements
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["time"].as_str().unwrap().parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn a_native_pair_runs_a_day_and_loses_nothing_while_the_controller_is_down() {
+    // an hour of clock time per real second
+    let pair = Pair::new(3600.0);
+    let controller = pair.controller();
+    let _field = pair.field(&repo("config/compose-field.toml"));
+    let base = pair.base();
+    // the simulator registers its field
+    let id = wait_for(30, "registration", || {
+        get(&format!("{base}/v1/fields"))?.as_array()?.first()?["id"].as_i64()
+    });
+    let fp = format!("{base}/v1/fields/{id}");
+    // twelve hours, with setpoints delivered to the simulator
+    wait_for(60, "12 h of setpoints", || {
+        let sp = get(&format!("{fp}/setpoints?limit=1000"))?;
+        (sp.as_array()?.len() >= 6).then_some(())
+    });
+    let field_file = pair.dir.path().join("field/field-compose_field.json");
+    let saved: Value =
+        serde_json::from_str(&std::fs::read_to_string(&field_file).unwrap()).unwrap();
+    assert!(
+        saved["setpoint"].is_array(),
+        "no setpoint delivered: {saved}"
+    );
+
+    // the controller goes down for a few clock hours
+    let before = times(&get(&format!("{fp}/measurements?limit=100000")).unwrap());
+    drop(controller);
+    std::thread::sleep(Duration::from_secs(4));
+    let _controller = pair.controller();
+    // a day has passed and the buffered measurements arrived
+    let all = wait_for(60, "a day of measurements after the outage", || {
+        let m = get(&format!("{fp}/measurements?limit=100000"))?;
+        let t = times(&m);
+        (t.len() >= before.len() + 40 && (*t.last()? - t[0]).num_hours() >= 24).then_some(t)
+    });
+    // every 15-min measurement is there once: no gap across the outage
+    for w in all.windows(2) {
+        assert_eq!(
+            (w[1] - w[0]).num_seconds(),
+            900,
+            "gap or duplicate between {} and {}",
+            w[0],
+            w[1]
+        );
+    }
+    // a cycle every 2 h, but none while the controller was down
+    let setpoints = get(&format!("{fp}/setpoints?limit=1000")).unwrap();
+    assert!(setpoints.as_array().unwrap().len() >= 8, "{setpoints}");
+    for s in setpoints.as_array().unwrap() {
+        let rate = s["rate"].as_f64().unwrap();
+        assert!((0.0..=1e-5).contains(&rate), "{s}");
+    }
+}
+
+#[test]
+fn a_clock_mismatch_is_refused() {
+    let pair = Pair::new(3600.0);
+    let _controller = pair.controller();
+    let mut env = pair.clock_env();
+    env[1].1 = "720".into();
+    env.push(("ROOTZONE_SIM_LISTEN", "127.0.0.1:0".into()));
+    env.push((
+        "ROOTZONE_SIM_DATA_DIR",
+        pair.dir.path().join("field").display().to_string(),
+    ));
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rootzone"));
+    cmd.args(["field-sim", "--controller", &pair.base()]);
+    for (k, v) in &env {
+        cmd.env(k, v);
+    }
+    let out = cmd.output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("clock mismatch"), "{err}");
+}
+
+/// Checks the variables of a service without a command of its own; returns
+/// no command.
+fn continue_with_env(
+    name: &str,
+    service: &yaml_rust2::Yaml,
+    allowed: &BTreeSet<String>,
+) -> Vec<String> {
+    for (k, _) in yaml_map(&service["environment"]) {
+        assert!(allowed.contains(&k), "{name}: {k} is not read by rootzone");
+    }
+    Vec::new()
+}
+
+/// `key: value` pairs of a YAML mapping as strings.
+fn yaml_map(y: &yaml_rust2::Yaml) -> Vec<(String, String)> {
+    y.as_hash()
+        .map(|h| {
+            h.iter()
+                .filter_map(|(k, v)| {
+                    let value = match v {
+                        yaml_rust2::Yaml::String(s) => s.clone(),
+                        yaml_rust2::Yaml::Integer(i) => i.to_string(),
+                        yaml_rust2::Yaml::Real(r) => r.clone(),
+                        _ => return None,
+                    };
+                    Some((k.as_str()?.to_string(), value))
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+#[test]
+fn the_compose_file_matches_what_the_binary_accepts() {
+    use yaml_rust2::{Yaml, YamlLoader};
+    let text = std::fs::read_to_string(repo("deploy/docker-compose.yml")).unwrap();
+    let doc = &YamlLoader::load_from_str(&text).unwrap()[0];
+    let allowed: BTreeSet<String> = rootzone::service::settings::ENV_KEYS
+        .iter()
+        .chain(rootzone::fieldsim::ENV_KEYS)
+        .map(|k| rootzone::service::settings::env_name(k))
+        .collect();
+    let clock = yaml_map(&doc["x-clock"]);
+    assert!(
+        !clock.is_empty(),
+        "the x-clock anchor holds the shared clock"
+    );
+    let services = doc["services"].as_hash().unwrap();
+    assert!(services.len() >= 2);
+    for (name, service) in services {
+        let name = name.as_str().unwrap();
+        // the command: a subcommand and flags the binary knows
+        let command: Vec<String> = match &service["command"] {
+            Yaml::Array(a) => a.iter().map(|v| v.as_str().unwrap().to_string()).collect(),
+            // a service extending another inherits its command
+            Yaml::BadValue if !service["extends"].is_badvalue() => {
+                continue_with_env(name, service, &allowed)
+            }
+            other => panic!("{name}: command must be a list, got {other:?}"),
+        };
+        if command.is_empty() {
+            continue;
+        }
+        let help = Command::new(env!("CARGO_BIN_EXE_rootzone"))
+            .args([command[0].as_str(), "--help"])
+            .output()
+            .unwrap();
+        assert!(
+            help.status.success(),
+            "{name}: unknown subcommand {}",
+            command[0]
+        );
+        let help = String::from_utf8_lossy(&help.stdout);
+        for flag in command.iter().filter(|a| a.starts_with("--")) {
+            assert!(
+                help.contains(flag.as_str()),
+                "{name}: {flag} is not an option of {}",
+                command[0]
+            );
+        }
+        // the configuration file it names exists in config/ and loads
+        if let Some(i) = command.iter().position(|a| a == "--config") {
+            let file = command[i + 1].strip_prefix("/etc/rootzone/").unwrap();
+            let local = repo(&format!("config/{file}"));
+            assert!(local.is_file(), "{name}: {file} is not in config/");
+            match command[0].as_str() {
+                "serve" => {
+                    rootzone::service::Settings::load(Some(&local)).unwrap();
+                }
+                _ => {
+                    rootzone::fieldsim::FieldSimSettings::load(
+                        Some(&local),
+                        Some("http://controller:8080"),
+                    )
+                    .unwrap();
+                }
+            }
+        }
+        // every variable is one the binary reads
+        let env = yaml_map(&service["environment"]);
+        for (k, _) in env.iter().chain(&clock) {
+            assert!(allowed.contains(k), "{name}: {k} is not read by rootzone");
+        }
+        // ports: the published port is the one the process listens on, and
+        // the healthcheck asks that port
+        let listen = env
+            .iter()
+            .find(|(k, _)| k == "ROOTZONE_LISTEN" || k == "ROOTZONE_SIM_LISTEN")
+            .map(|(_, v)| v.rsplit(':').next().unwrap().to_string());
+        if let (Some(port), Yaml::Array(ports)) = (&listen, &service["ports"]) {
+            for p in ports {
+                let inner = p.as_str().unwrap().rsplit(':').next().unwrap();
+                assert_eq!(inner, port, "{name}: published {p:?} but listens on {port}");
+            }
+        }
+        if let (Some(port), Yaml::Array(test)) = (&listen, &service["healthcheck"]["test"]) {
+            let url = test
+                .iter()
+                .filter_map(|v| v.as_str())
+                .find(|v| v.starts_with("http"))
+                .unwrap();
+            assert!(
+                url.contains(&format!(":{port}/healthz")),
+                "{name}: healthcheck {url}"
+            );
+        }
+    }
+    // the field simulator is told where to reach the controller and where
+    // the controller reaches it
+    let field = &doc["services"]["field"];
+    let cmd: Vec<&str> = field["command"]
+        .as_vec()
+        .unwrap()
+        .iter()
+        .filter_map(|v| v.as_str())
+        .collect();
+    let controller_url = cmd[cmd.iter().position(|a| *a == "--controller").unwrap() + 1];
+    assert_eq!(controller_url, "http://controller:8080");
+    let public = yaml_map(&field["environment"])
+        .into_iter()
+        .find(|(k, _)| k == "ROOTZONE_PUBLIC_URL")
+        .unwrap()
+        .1;
+    assert_eq!(public, "http://field:9090");
+}
