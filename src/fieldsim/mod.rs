@@ -206,6 +206,7 @@ impl SimField {
                 time: self.time,
                 theta: report.measured_water_content.clamp(0.0, 1.0),
                 sensor: Some(format!("field-sim/{}", self.name)),
+                true_theta: None,
             });
             while self.buffer.len() > max_buffer {
                 self.buffer.pop_front();

@@ -72,6 +72,7 @@ type ApiResult<T> = Result<T, ApiError>;
 /// The router of the whole API.
 pub fn router(state: Arc<AppState>) -> Router {
     Router::new()
+        .route("/", get(dashboard))
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/readyz", get(ready))
         .route("/metrics", get(metrics))
@@ -93,6 +94,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/fields/{id}/setpoints", get(get_setpoints))
         .route("/v1/fields/{id}/control", post(post_control))
         .route("/v1/fields/{id}/simulation", get(get_simulation))
+        .route("/v1/fields/{id}/chart.svg", get(get_chart))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
         .layer(DefaultBodyLimit::max(MAX_BODY))
         .with_state(state)
@@ -390,6 +392,7 @@ async fn post_measurements(
             time,
             theta: m.theta,
             sensor: m.sensor,
+            true_theta: None,
         });
     }
     let field = load_field(&state, &id).await?;
@@ -604,4 +607,63 @@ async fn get_simulation(
             })
     })
     .await
+}
+
+/// The dashboard page (no external resources; it reads the JSON API).
+async fn dashboard() -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
+        include_str!("dashboard.html"),
+    )
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ChartQuery {
+    hours: Option<f64>,
+    /// Ignored: lets a page defeat caching.
+    #[allow(dead_code)]
+    t: Option<String>,
+}
+
+/// A field's chart over the last `hours` (default 48) as SVG.
+async fn get_chart(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    query: Result<Query<ChartQuery>, QueryRejection>,
+) -> ApiResult<Response> {
+    let Query(q) = query.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, e.body_text()))?;
+    let hours = q.hours.unwrap_or(48.0);
+    if !(hours.is_finite() && hours > 0.0 && hours <= 24.0 * 60.0) {
+        return Err(ApiError::bad(format!(
+            "hours = {hours} must be in (0, 1440]"
+        )));
+    }
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    let now = state.clock.now();
+    let svg = blocking(move || {
+        let from = super::chart::window(now, hours);
+        let store = &engine.store;
+        let measurements = store
+            .measurements(field.id, Some(from), Some(now), 100_000)
+            .map_err(ApiError::internal)?;
+        let setpoints = store
+            .setpoints(field.id, Some(from), None, 100_000)
+            .map_err(ApiError::internal)?;
+        let forecast = store
+            .latest_forecast(field.id)
+            .map_err(ApiError::internal)?;
+        super::chart::render(&super::chart::ChartData {
+            title: &field.spec.name,
+            now,
+            hours,
+            measurements: &measurements,
+            setpoints: &setpoints,
+            forecast: forecast.as_ref(),
+        })
+        .map_err(ApiError::internal)
+    })
+    .await?;
+    Ok(([(header::CONTENT_TYPE, "image/svg+xml")], svg).into_response())
 }

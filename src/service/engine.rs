@@ -282,6 +282,7 @@ impl Engine {
                 time: p.time,
                 theta: report.measured_water_content.clamp(0.0, 1.0),
                 sensor: Some("simulated".into()),
+                true_theta: Some(report.water_content),
             });
         }
         if !batch.is_empty() {

@@ -3,6 +3,7 @@
 //! part of the crate that knows tokio, axum, SQLite and JSON wire types.
 
 pub mod api;
+pub mod chart;
 pub mod clock;
 pub mod engine;
 pub mod metrics;

@@ -43,6 +43,8 @@ const MIGRATIONS: &[&str] = &[
     "DELETE FROM measurements WHERE rowid NOT IN (
          SELECT MIN(rowid) FROM measurements GROUP BY field_id, time, COALESCE(sensor, ''));
      CREATE UNIQUE INDEX measurements_once ON measurements(field_id, time, COALESCE(sensor, ''));",
+    // the noise-free θ of the built-in simulated fields, for the dashboard
+    "ALTER TABLE measurements ADD COLUMN true_theta REAL;",
 ];
 
 /// A storage operation failed.
@@ -203,11 +205,17 @@ impl Store {
             let mut new = 0;
             {
                 let mut stmt = tx.prepare_cached(
-                    "INSERT INTO measurements(field_id, time, theta, sensor) VALUES (?1, ?2, ?3, ?4)
-                     ON CONFLICT DO NOTHING",
+                    "INSERT INTO measurements(field_id, time, theta, sensor, true_theta)
+                     VALUES (?1, ?2, ?3, ?4, ?5) ON CONFLICT DO NOTHING",
                 )?;
                 for m in batch {
-                    new += stmt.execute(params![field, millis(m.time), m.theta, m.sensor])?;
+                    new += stmt.execute(params![
+                        field,
+                        millis(m.time),
+                        m.theta,
+                        m.sensor,
+                        m.true_theta
+                    ])?;
                 }
             }
             tx.commit()?;
@@ -225,7 +233,7 @@ impl Store {
     ) -> Result<Vec<Measurement>, StoreError> {
         self.with(|c| {
             let mut stmt = c.prepare_cached(
-                "SELECT time, theta, sensor FROM measurements
+                "SELECT time, theta, sensor, true_theta FROM measurements
                  WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
                  ORDER BY time, rowid LIMIT ?4",
             )?;
@@ -241,6 +249,7 @@ impl Store {
                         time: time(r.get(0)?),
                         theta: r.get(1)?,
                         sensor: r.get(2)?,
+                        true_theta: r.get(3)?,
                     })
                 },
             )?;
@@ -256,7 +265,7 @@ impl Store {
     ) -> Result<Option<Measurement>, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
-                "SELECT time, theta, sensor FROM measurements
+                "SELECT time, theta, sensor, true_theta FROM measurements
                  WHERE field_id = ?1 AND time <= ?2 ORDER BY time DESC, rowid DESC LIMIT 1",
                 params![field, millis(at)],
                 |r| {
@@ -264,6 +273,7 @@ impl Store {
                         time: time(r.get(0)?),
                         theta: r.get(1)?,
                         sensor: r.get(2)?,
+                        true_theta: r.get(3)?,
                     })
                 },
             )

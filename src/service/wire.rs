@@ -393,6 +393,9 @@ pub struct Measurement {
     pub theta: f64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor: Option<String>,
+    /// The noise-free θ, for the built-in simulated fields only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub true_theta: Option<f64>,
 }
 
 /// One measurement or a batch.

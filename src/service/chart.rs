@@ -1,0 +1,190 @@
+//! The dashboard's chart of a field, drawn server-side as SVG with plotters:
+//! measured θ, the true θ of a simulated field, the zone band, the latest
+//! predicted θ over the horizon, irrigation and forecast rain as bars.
+
+use chrono::{DateTime, TimeDelta, Utc};
+use plotters::prelude::*;
+
+use super::wire::{Forecast, Measurement, Setpoint};
+
+/// What one chart shows.
+pub struct ChartData<'a> {
+    pub title: &'a str,
+    pub now: DateTime<Utc>,
+    pub hours: f64,
+    pub measurements: &'a [Measurement],
+    pub setpoints: &'a [Setpoint],
+    pub forecast: Option<&'a Forecast>,
+}
+
+fn hours_between(a: DateTime<Utc>, b: DateTime<Utc>) -> f64 {
+    (b - a).num_milliseconds() as f64 / 3.6e6
+}
+
+/// The SVG text of the chart; x is hours relative to now (the past negative,
+/// the horizon positive).
+pub fn render(data: &ChartData<'_>) -> Result<String, String> {
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (900, 520)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let (top, bottom) = root.split_vertically(360);
+        let latest = data.setpoints.last();
+        let ahead = latest.map_or(0.0, |s| {
+            hours_between(data.now, s.time)
+                + s.plan.len() as f64 * hours_between(s.valid_from, s.valid_until)
+        });
+        let x0 = -data.hours;
+        let x1 = ahead.max(1.0);
+        let mut values: Vec<f64> = data
+            .measurements
+            .iter()
+            .flat_map(|m| [Some(m.theta), m.true_theta])
+            .flatten()
+            .collect();
+        if let Some(s) = latest {
+            values.extend(s.predicted_theta.iter().copied());
+            values.extend(s.zone.iter().flat_map(|z| [z[0], z[1]]));
+        }
+        let (lo, hi) = values
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((0.15f64, 0.25f64), |(a, b), v| (a.min(*v), b.max(*v)));
+        let mut chart = ChartBuilder::on(&top)
+            .caption(data.title, ("sans-serif", 18))
+            .margin(10)
+            .x_label_area_size(28)
+            .y_label_area_size(56)
+            .build_cartesian_2d(x0..x1, (lo - 0.01)..(hi + 0.01))
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .max_light_lines(2)
+            .y_desc("θ [m³/m³]")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        let green = RGBColor(44, 160, 44);
+        // the zone in force: each setpoint's first-step zone until the next
+        for (i, s) in data.setpoints.iter().enumerate() {
+            let Some(z) = s.zone.first() else { continue };
+            let from = hours_between(data.now, s.time).max(x0);
+            let to = data
+                .setpoints
+                .get(i + 1)
+                .map_or(x1, |n| hours_between(data.now, n.time));
+            if to > from {
+                chart
+                    .draw_series(std::iter::once(Rectangle::new(
+                        [(from, z[0]), (to, z[1])],
+                        green.mix(0.15).filled(),
+                    )))
+                    .map_err(|e| e.to_string())?;
+            }
+        }
+        // the latest plan's zone over the horizon, dashed
+        if let Some(s) = latest {
+            let step = hours_between(s.valid_from, s.valid_until);
+            let start = hours_between(data.now, s.time);
+            for side in [0, 1] {
+                let pts: Vec<(f64, f64)> = s
+                    .zone
+                    .iter()
+                    .enumerate()
+                    .map(|(k, z)| (start + (k + 1) as f64 * step, z[side]))
+                    .collect();
+                chart
+                    .draw_series(DashedLineSeries::new(pts, 5, 4, green.stroke_width(1)))
+                    .map_err(|e| e.to_string())?;
+            }
+            let predicted: Vec<(f64, f64)> = s
+                .predicted_theta
+                .iter()
+                .enumerate()
+                .map(|(k, v)| (start + (k + 1) as f64 * step, *v))
+                .filter(|p| p.1.is_finite())
+                .collect();
+            let orange = RGBColor(255, 127, 14);
+            chart
+                .draw_series(LineSeries::new(predicted, orange.stroke_width(2)))
+                .map_err(|e| e.to_string())?
+                .label("predicted θ")
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], orange));
+        }
+        let truth: Vec<(f64, f64)> = data
+            .measurements
+            .iter()
+            .filter_map(|m| Some((hours_between(data.now, m.time), m.true_theta?)))
+            .collect();
+        if !truth.is_empty() {
+            chart
+                .draw_series(LineSeries::new(truth, BLACK.stroke_width(2)))
+                .map_err(|e| e.to_string())?
+                .label("true θ")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
+        }
+        let blue = RGBColor(31, 119, 180);
+        chart
+            .draw_series(
+                data.measurements.iter().map(|m| {
+                    Circle::new((hours_between(data.now, m.time), m.theta), 2, blue.filled())
+                }),
+            )
+            .map_err(|e| e.to_string())?
+            .label("measured θ")
+            .legend(move |(x, y)| Circle::new((x + 8, y), 3, blue.filled()));
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| e.to_string())?;
+
+        // irrigation (past setpoints) and forecast rain as bars
+        let mut bars: Vec<(f64, f64, f64, RGBColor)> = Vec::new();
+        for s in data.setpoints {
+            let a = hours_between(data.now, s.valid_from);
+            let b = hours_between(data.now, s.valid_until);
+            if b > x0 && s.amount_mm > 0.0 {
+                bars.push((a.max(x0), a.max(x0) + 0.5 * (b - a), s.amount_mm, blue));
+            }
+        }
+        if let Some(f) = data.forecast {
+            let step = f.step_s / 3600.0;
+            let start = hours_between(data.now, f.start);
+            for (k, p) in f.precip_mm.iter().enumerate() {
+                let a = start + k as f64 * step;
+                if *p > 0.0 && a >= x0 && a <= x1 {
+                    bars.push((a + 0.5 * step, a + step, *p, RGBColor(128, 128, 128)));
+                }
+            }
+        }
+        let top_mm = bars.iter().map(|b| b.2).fold(0.5f64, f64::max);
+        let mut lower = ChartBuilder::on(&bottom)
+            .margin(10)
+            .x_label_area_size(30)
+            .y_label_area_size(56)
+            .build_cartesian_2d(x0..x1, 0.0..top_mm * 1.1)
+            .map_err(|e| e.to_string())?;
+        lower
+            .configure_mesh()
+            .max_light_lines(2)
+            .x_desc("hours from now")
+            .y_desc("mm")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        lower
+            .draw_series(
+                bars.iter()
+                    .map(|&(a, b, v, c)| Rectangle::new([(a, 0.0), (b, v)], c.filled())),
+            )
+            .map_err(|e| e.to_string())?;
+        root.present().map_err(|e| e.to_string())?;
+    }
+    Ok(svg)
+}
+
+/// The window of a chart: the last `hours` before `now`.
+pub fn window(now: DateTime<Utc>, hours: f64) -> DateTime<Utc> {
+    now - TimeDelta::milliseconds((hours * 3.6e6) as i64)
+}
