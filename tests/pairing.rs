@@ -362,3 +362,86 @@ fn the_compose_file_matches_what_the_binary_accepts() {
         .1;
     assert_eq!(public, "http://field:9090");
 }
+
+#[test]
+fn a_five_day_pairing_run_matches_the_in_process_closed_loop() {
+    use rootzone::experiment::ExperimentOptions;
+    use rootzone::experiment::closed_loop::{ControllerKind, Models, Scenario, run};
+    // four clock hours per real second: five days in 30 s
+    let pair = Pair::new(14_400.0);
+    let config = pair.dir.path().join("field.toml");
+    std::fs::write(
+        &config,
+        r#"
+[[fields]]
+name = "five-day"
+model = "two-layer"
+[fields.simulation]
+scenario = "dry"
+process_noise = 0.0
+measurement_noise = 0.0
+forecast_error = 0.0
+seed = 7
+measurement_interval_s = 900.0
+initial_head = -0.2
+"#,
+    )
+    .unwrap();
+    let _controller = pair.controller();
+    let _field = pair.field(&config);
+    let base = pair.base();
+    let id = wait_for(30, "registration", || {
+        get(&format!("{base}/v1/fields"))?.as_array()?.first()?["id"].as_i64()
+    });
+    let fp = format!("{base}/v1/fields/{id}");
+    let setpoints = wait_for(120, "60 control cycles", || {
+        let sp = get(&format!("{fp}/setpoints?limit=1000"))?;
+        (sp.as_array()?.len() >= 61).then_some(sp)
+    });
+    let cycles = &setpoints.as_array().unwrap()[..60];
+    let paired: f64 = cycles
+        .iter()
+        .map(|s| s["amount_mm"].as_f64().unwrap())
+        .sum();
+    let last_cycle: chrono::DateTime<chrono::Utc> =
+        cycles[59]["valid_until"].as_str().unwrap().parse().unwrap();
+    let theta = wait_for(30, "the last measurement", || {
+        let m = get(&format!("{fp}/measurements?limit=100000"))?;
+        m.as_array()?
+            .iter()
+            .rev()
+            .find(|m| {
+                m["time"]
+                    .as_str()
+                    .and_then(|t| t.parse::<chrono::DateTime<chrono::Utc>>().ok())
+                    <= Some(last_cycle)
+            })
+            .and_then(|m| m["theta"].as_f64())
+            .filter(|_| true)
+    });
+    // the same field, weather and controller in process
+    let options = ExperimentOptions {
+        models: repo("models"),
+        out: pair.dir.path().join("reports"),
+        seed: 7,
+        cache: pair.dir.path().join("cache"),
+        samples: 1000,
+    };
+    let models = Models::load(&options).unwrap();
+    let scenario = Scenario {
+        process_noise: 0.0,
+        ..Scenario::e4()
+    };
+    let in_process = run(ControllerKind::TwoLayer, &models, &scenario, 7)
+        .unwrap()
+        .total_irrigation_mm();
+    eprintln!("I_T paired {paired:.2} mm, in process {in_process:.2} mm; final θ {theta:.4}");
+    assert!(
+        (paired - in_process).abs() <= 0.1 * in_process,
+        "I_T paired {paired} vs in process {in_process}"
+    );
+    assert!(
+        (0.18..=0.23).contains(&theta),
+        "final θ {theta} outside the zone"
+    );
+}

@@ -4,7 +4,8 @@
 
 use crate::soil::Field;
 use crate::surrogate::Predictor;
-use crate::surrogate::correction::{CorrectionKind, CorrectionState};
+use std::collections::VecDeque;
+
 use crate::weather::{WeatherStep, mm_to_rate};
 
 use super::model::{PredictionModel, RichardsModel, SurrogateModel};
@@ -13,11 +14,12 @@ use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
 /// The prediction model a controller uses.
 #[derive(Debug, Clone)]
 enum Model {
-    /// A surrogate with its window; the correction and the bias-free
-    /// one-step predictions it is fitted on.
+    /// A surrogate with its window and the last `period` residuals
+    /// y_meas(t) − ŷ(t | t−1) the bias is the mean of.
     Surrogate {
         model: Box<SurrogateModel>,
-        correction: CorrectionState,
+        residuals: VecDeque<f64>,
+        period: usize,
     },
     /// The Richards model from the full (true) state of a field.
     Richards,
@@ -43,8 +45,9 @@ pub struct Decision {
 
 impl Controller {
     /// A surrogate controller (single LSTM or two-layer network) with a
-    /// single-bias correction refitted every `bias_period` steps on the mean
-    /// of y_meas(t) − ŷ(t | t−1) over that many steps (MODEL.md §3), and the
+    /// single-bias correction: at every step, the mean of y_meas(t) −
+    /// ŷ(t | t−1) over the last `bias_period` steps, held over the horizon
+    /// (MODEL.md §3, closed loop), and the
     /// first measurement `first` (the window is padded with it, MODEL.md §4).
     pub fn surrogate(
         settings: MpcSettings,
@@ -57,7 +60,8 @@ impl Controller {
             mpc: ZoneMpc::new(settings),
             model: Model::Surrogate {
                 model: Box::new(SurrogateModel::padded(predictor, first)),
-                correction: CorrectionState::new(CorrectionKind::Bias, bias_period),
+                residuals: VecDeque::with_capacity(bias_period.max(1)),
+                period: bias_period.max(1),
             },
             sampling_time,
             observed: 0,
@@ -92,11 +96,20 @@ impl Controller {
     /// refits the bias on the bias-free one-step prediction of that step.
     pub fn observe(&mut self, irrigation: f64, precip_mm: f64, measured: f64) {
         self.observed += 1;
-        if let Model::Surrogate { model, correction } = &mut self.model {
+        if let Model::Surrogate {
+            model,
+            residuals,
+            period,
+        } = &mut self.model
+        {
             let supply = irrigation + mm_to_rate(precip_mm, self.sampling_time);
             if measured.is_finite() {
                 if let Ok(predicted) = model.one_step(supply) {
-                    model.bias = correction.observe(measured, predicted).b;
+                    if residuals.len() == *period {
+                        residuals.pop_front();
+                    }
+                    residuals.push_back(measured - predicted);
+                    model.bias = residuals.iter().sum::<f64>() / residuals.len() as f64;
                 }
                 model.push(supply, measured);
             }

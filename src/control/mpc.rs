@@ -55,8 +55,11 @@ pub struct MpcSettings {
     pub objective_tolerance: f64,
     pub time_budget: Duration,
     /// The rate [m/s] below which the trust region turns from logarithmic to
-    /// linear (see [`TrustMetric`]).
+    /// linear (see [`TrustMetric`]) in cold runs; a knee as large as u_max
+    /// makes it nearly linear, which explores widely.
     pub trust_region_knee: f64,
+    /// The same for a warm-started run, which starts near the optimum.
+    pub warm_trust_region_knee: f64,
     /// SQP runs of a cold solve: the start and the `starts − 1` most
     /// promising constant plans (see [`ZoneMpc::solve`]).
     pub starts: usize,
@@ -79,6 +82,7 @@ impl Default for MpcSettings {
             time_budget: Duration::from_secs(1),
             starts: 2,
             trust_region_knee: 1.0,
+            warm_trust_region_knee: crate::surrogate::scaling::DEFAULT_U0,
         }
     }
 }
@@ -268,7 +272,14 @@ impl ZoneMpc {
         let n = s.horizon;
         let warm = self.warm_start();
         let warm_started = self.previous.is_some();
-        let mut best = self.solve_from(model, warm.clone(), start);
+        // a warm start lies near the optimum: a trust region logarithmic in
+        // the rate takes the small rates' curvature in few steps
+        let knee = if warm_started {
+            s.warm_trust_region_knee
+        } else {
+            s.trust_region_knee
+        };
+        let mut best = self.solve_from(model, warm.clone(), start, knee);
         if matches!(best.status, SolveStatus::Fallback(_)) {
             return best;
         }
@@ -295,7 +306,7 @@ impl ZoneMpc {
             if start.elapsed() > s.time_budget {
                 break;
             }
-            let sol = self.solve_from(model, other, start);
+            let sol = self.solve_from(model, other, start, s.trust_region_knee);
             if !matches!(sol.status, SolveStatus::Fallback(_)) && sol.objective < best.objective {
                 best = Solution {
                     iterations: best.iterations + sol.iterations,
@@ -316,6 +327,7 @@ impl ZoneMpc {
         model: &mut dyn PredictionModel,
         ubar: Vec<f64>,
         start: Instant,
+        knee: f64,
     ) -> Solution {
         let s = self.settings;
         let n = s.horizon;
@@ -341,7 +353,7 @@ impl ZoneMpc {
             return fallback(self, &ubar, e.to_string(), 0);
         }
         let mut j = objective(&s, &y, &ubar);
-        let metric = TrustMetric::new(s.trust_region_knee / s.u_max);
+        let metric = TrustMetric::new(knee / s.u_max);
         let mut radius = 0.5;
         let mut status = SolveStatus::IterationCap;
         let mut iterations = 0;
