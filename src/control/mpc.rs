@@ -78,7 +78,7 @@ impl Default for MpcSettings {
             theta_s: soil.saturated_water_content,
             max_iterations: 50,
             step_tolerance: 1e-6,
-            objective_tolerance: 1e-6,
+            objective_tolerance: 1e-5,
             time_budget: Duration::from_secs(1),
             starts: 2,
             trust_region_knee: 1.0,
