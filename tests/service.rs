@@ -450,13 +450,31 @@ fn acknowledged_data_survives_kill_9_and_a_restart() {
     }
     let sp = json_of(&curl(&d, "POST", &format!("{fp}/control"), None, Some(TOKEN)).2);
     drop(d); // SIGKILL
-    let d = start(dir.path(), &config(""));
+    let mut d = start(dir.path(), &config(""));
     let stored = json_of(&curl(&d, "GET", &format!("{fp}/measurements"), None, None).2);
     assert_eq!(stored.as_array().unwrap().len(), 20);
     assert_eq!(
         json_of(&curl(&d, "GET", &format!("{fp}/setpoint"), None, None).2),
         sp
     );
+    // SIGTERM: a clean stop
+    let pid = d.child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let status = loop {
+        if let Some(status) = d.child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "no exit after SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "{status:?}");
 }
 
 #[test]
