@@ -396,6 +396,26 @@ fn api_stores_controls_and_rejects_bad_input() {
     for flag in ["no-measurement", "default-forecast", "solver-fallback"] {
         assert!(flags.contains(&flag), "{flags:?}");
     }
+    assert!(sp.get("predicted_next").is_none(), "{sp}");
+    // a measurement arrives: the next cycle reads the fallback back and runs
+    let op = format!("/v1/fields/{}", other["id"]);
+    let one = json!({"time": now_minus(1), "theta": 0.2}).to_string();
+    let r = curl(
+        &d,
+        "POST",
+        &format!("{op}/measurements"),
+        Some(&one),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let r = curl(&d, "POST", &format!("{op}/control"), None, Some(TOKEN));
+    assert_eq!(r.0, 200, "{}", r.2);
+    let sp = json_of(&r.2);
+    assert_ne!(sp["status"], "fallback", "{sp}");
+    assert!(sp["predicted_next"].as_f64().is_some(), "{sp}");
+    assert!(sp["measured_at"].is_string(), "{sp}");
+    let history = json_of(&curl(&d, "GET", &format!("{op}/setpoints"), None, None).2);
+    assert_eq!(history.as_array().unwrap().len(), 2, "{history}");
 
     // patch and delete
     let r = curl(
@@ -409,7 +429,7 @@ fn api_stores_controls_and_rejects_bad_input() {
     assert_eq!(json_of(&r.2)["zone"]["mu"], 1.0);
     let metrics = curl(&d, "GET", "/metrics", None, None).2;
     assert!(
-        metrics.contains("rootzone_measurements_ingested_total 13"),
+        metrics.contains("rootzone_measurements_ingested_total 14"),
         "{metrics}"
     );
     assert!(
@@ -421,7 +441,7 @@ fn api_stores_controls_and_rejects_bad_input() {
         .filter(|l| l.starts_with("rootzone_control_cycles_total{"))
         .filter_map(|l| l.split_whitespace().last()?.parse::<f64>().ok())
         .sum();
-    assert_eq!(cycles, 2.0, "{metrics}");
+    assert_eq!(cycles, 3.0, "{metrics}");
     assert_eq!(curl(&d, "DELETE", &fp, None, Some(TOKEN)).0, 204);
     problem(curl(&d, "GET", &fp, None, None), 404, &id.to_string());
 }

@@ -147,6 +147,8 @@ struct SimField {
     /// The latest setpoint received: (rate, valid from, valid until).
     setpoint: Option<(f64, DateTime<Utc>, DateTime<Utc>)>,
     last_forecast: Option<DateTime<Utc>>,
+    /// Whether the reading of the initial state has been taken.
+    started: bool,
 }
 
 /// Stored per field: plant and buffer.
@@ -158,6 +160,11 @@ struct Saved {
     amounts: [f64; 4],
     buffer: Vec<Measurement>,
     setpoint: Option<(f64, DateTime<Utc>, DateTime<Utc>)>,
+    /// Whether the initial state was read (files of older versions: not
+    /// known; reading it again is harmless, the controller keeps one
+    /// measurement per time and sensor).
+    #[serde(default)]
+    started: bool,
 }
 
 struct Shared {
@@ -182,6 +189,7 @@ impl SimField {
             amounts: self.plant.state().amounts,
             buffer: self.buffer.iter().cloned().collect(),
             setpoint: self.setpoint,
+            started: self.started,
         };
         let path = saved_path(dir, &self.name);
         let tmp = path.with_extension("tmp");
@@ -193,6 +201,17 @@ impl SimField {
     fn advance(&mut self, now: DateTime<Utc>, max_buffer: usize) -> Result<bool, String> {
         let interval = TimeDelta::milliseconds((self.sim.measurement_interval_s * 1000.0) as i64);
         let mut stepped = false;
+        if !self.started && self.time <= now {
+            // the sensor reads the initial state at the start
+            self.started = true;
+            self.buffer.push_back(Measurement {
+                time: self.time,
+                theta: self.plant.measure().clamp(0.0, 1.0),
+                sensor: Some(format!("field-sim/{}", self.name)),
+                true_theta: None,
+            });
+            stepped = true;
+        }
         while self.time + interval <= now {
             let rate = match self.setpoint {
                 Some((rate, from, until)) if from <= self.time && self.time < until => rate,
@@ -258,10 +277,12 @@ pub async fn run(
         })
         .map_err(FieldSimError)?;
         let now = clock.now();
-        let mut time =
-            crate::service::clock::boundary_at_or_before(now, sim.measurement_interval_s);
+        let mut time = sim.start.unwrap_or_else(|| {
+            crate::service::clock::boundary_at_or_before(now, sim.measurement_interval_s)
+        });
         let mut buffer = VecDeque::new();
         let mut setpoint = None;
+        let mut started = false;
         if let Ok(text) = std::fs::read_to_string(saved_path(&settings.sim_data_dir, &spec.name))
             && let Ok(saved) = serde_json::from_str::<Saved>(&text)
         {
@@ -278,6 +299,7 @@ pub async fn run(
             time = saved.time;
             buffer = saved.buffer.into();
             setpoint = saved.setpoint;
+            started = saved.started;
         }
         fields.push(SimField {
             name: spec.name.clone(),
@@ -296,6 +318,7 @@ pub async fn run(
             buffer,
             setpoint,
             last_forecast: None,
+            started,
         });
     }
     let shared = Arc::new(Shared {

@@ -133,6 +133,8 @@ pub struct SimulatedPlant {
     /// Midnight (UTC) of the field's first day: the scenario's hour 0.
     day_zero: DateTime<Utc>,
     spec: SimulationSpec,
+    /// Whether the reading of the initial state has been stored.
+    started: bool,
 }
 
 impl SimulatedPlant {
@@ -207,8 +209,9 @@ impl Engine {
             ..FieldSettings::default()
         };
         let mut plant = Plant::new(settings).map_err(|e| EngineError::Plant(field.id, e))?;
-        let day_zero = midnight(field.created_at);
-        let mut time = field.created_at;
+        let mut time = spec.start.unwrap_or(field.created_at);
+        let day_zero = midnight(time);
+        let mut started = false;
         if let Some(body) = self.store.simulation(field.id)? {
             let state: PlantState = serde_json::from_str(&body).map_err(StoreError::from)?;
             plant
@@ -222,12 +225,14 @@ impl Engine {
                 )
                 .map_err(|e| EngineError::Plant(field.id, e))?;
             time = state.time;
+            started = true;
         }
         let p = Arc::new(Mutex::new(SimulatedPlant {
             plant,
             time,
             day_zero,
             spec,
+            started,
         }));
         plants.insert(field.id, p.clone());
         Ok(Some(p))
@@ -254,6 +259,18 @@ impl Engine {
         let mut batch = Vec::new();
         let mut rate = 0.0;
         let mut rate_until = p.time;
+        if !p.started && p.time <= now {
+            // the sensor reads the initial state at the start
+            p.started = true;
+            let time = p.time;
+            let theta = p.plant.measure().clamp(0.0, 1.0);
+            batch.push(super::wire::Measurement {
+                time,
+                theta,
+                sensor: Some("simulated".into()),
+                true_theta: Some(p.plant.water_content()),
+            });
+        }
         while p.time + interval <= now {
             if p.time >= rate_until {
                 // the latest setpoint issued at or before this interval's start
@@ -414,6 +431,7 @@ impl Engine {
             .as_ref()
             .filter(|m| seconds(now - m.time) <= 2.0 * period);
         // the current θ: measured, or predicted by the last cycle when stale
+        let measured_at = fresh.map(|m| m.time);
         let mut current = fresh.map(|m| m.theta);
         if current.is_none() {
             if latest.is_some() {
@@ -497,9 +515,9 @@ impl Engine {
                 {
                     if let Some(m) = self.store.measurement_before(field.id, s.valid_until)?
                         && seconds(s.valid_until - m.time) <= period / 2.0
-                        && s.predicted_next.is_finite()
+                        && let Some(predicted) = s.predicted_next
                     {
-                        residuals.push(m.theta - s.predicted_next);
+                        residuals.push(m.theta - predicted);
                     }
                 }
                 if !residuals.is_empty() {
@@ -535,8 +553,9 @@ impl Engine {
                 iterations: 0,
                 solve_ms: 0.0,
                 degraded,
+                measured_at: None,
                 bias: 0.0,
-                predicted_next: f64::NAN,
+                predicted_next: None,
             };
             self.store.add_setpoint(&setpoint)?;
             return Ok(setpoint);
@@ -562,6 +581,7 @@ impl Engine {
                 .unwrap_or(f64::NAN),
             None => solution.predicted.first().copied().unwrap_or(f64::NAN),
         };
+        let predicted_next = Some(predicted_next).filter(|p| p.is_finite());
         let setpoint = Setpoint {
             field_id: field.id,
             time: now,
@@ -588,6 +608,7 @@ impl Engine {
             iterations: solution.iterations,
             solve_ms: solution.solve_time.as_secs_f64() * 1e3,
             degraded,
+            measured_at,
             bias,
             predicted_next,
         };

@@ -15,7 +15,7 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
-use chrono::{DateTime, Utc};
+use chrono::{DateTime, TimeDelta, Utc};
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
@@ -57,6 +57,8 @@ pub struct AppState {
     pub settings: Settings,
     /// Bounds the control cycles and simulations running at once.
     permits: Arc<Semaphore>,
+    /// Woken whenever measurements are stored (cycles waiting for theirs).
+    pub(crate) measured: tokio::sync::Notify,
     /// Cancels a field's scheduled tasks (on delete or shutdown).
     field_tasks: Mutex<HashMap<i64, CancellationToken>>,
     shutdown: CancellationToken,
@@ -159,6 +161,7 @@ impl App {
             token,
             permits: Arc::new(Semaphore::new(settings.limits.worker_threads)),
             settings,
+            measured: tokio::sync::Notify::new(),
             field_tasks: Mutex::new(HashMap::new()),
             shutdown: CancellationToken::new(),
             tracker: TaskTracker::new(),
@@ -252,8 +255,40 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) 
             _ = state.clock.sleep_until(next) => {}
             _ = cancel.cancelled() => return,
         }
+        if field.spec.actuator != Actuator::Simulated {
+            let wait = TimeDelta::milliseconds((field.spec.measurement_wait_s * 1000.0) as i64);
+            tokio::select! {
+                _ = measurement_at(&state, id, next, next + wait) => {}
+                _ = cancel.cancelled() => return,
+            }
+        }
         if let Err(e) = run_cycle(&state, field, next).await {
             eprintln!("field {id}: control cycle at {next}: {e}");
+        }
+    }
+}
+
+/// Returns once field `id` has a measurement stamped `at`, or at clock time
+/// `until`.
+async fn measurement_at(state: &AppState, id: i64, at: DateTime<Utc>, until: DateTime<Utc>) {
+    loop {
+        // registered before the check, so a store in between is not missed
+        let stored = state.measured.notified();
+        tokio::pin!(stored);
+        stored.as_mut().enable();
+        let engine = state.engine.clone();
+        let found = tokio::task::spawn_blocking(move || engine.store.measurement_before(id, at))
+            .await
+            .ok()
+            .and_then(Result::ok)
+            .flatten()
+            .is_some_and(|m| m.time >= at);
+        if found || state.clock.now() >= until {
+            return;
+        }
+        tokio::select! {
+            _ = stored => {}
+            _ = state.clock.sleep_until(until) => return,
         }
     }
 }

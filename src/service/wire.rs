@@ -26,6 +26,11 @@ pub struct FieldSpec {
     /// Control period [s].
     #[serde(default = "default_period")]
     pub control_period_s: f64,
+    /// How long a cycle at a period boundary waits for the measurement
+    /// stamped at that boundary before it runs on the latest one [s of
+    /// clock time]. Sensors report a little after the instant they measure.
+    #[serde(default = "default_measurement_wait")]
+    pub measurement_wait_s: f64,
     #[serde(default)]
     pub actuator: Actuator,
     /// The simulated plant (only with `actuator.kind = "simulated"`).
@@ -39,6 +44,10 @@ fn default_irrigation_max() -> f64 {
 
 fn default_period() -> f64 {
     7200.0
+}
+
+fn default_measurement_wait() -> f64 {
+    300.0
 }
 
 /// A soil: a preset texture name (Carsel & Parrish 1988) or parameters.
@@ -214,6 +223,11 @@ pub struct SimulationSpec {
     pub measurement_interval_s: f64,
     /// Uniform initial pressure head [m].
     pub initial_head: f64,
+    /// Clock time at which the plant starts from its initial state, with the
+    /// scenario's first day beginning at the midnight (UTC) before it.
+    /// Unset: when the field is created. Before it, the field is silent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub start: Option<DateTime<Utc>>,
 }
 
 impl Default for SimulationSpec {
@@ -226,6 +240,7 @@ impl Default for SimulationSpec {
             seed: 1,
             measurement_interval_s: 900.0,
             initial_head: -0.2,
+            start: None,
         }
     }
 }
@@ -249,6 +264,7 @@ impl FieldSpec {
             model: ModelKind::TwoLayer,
             irrigation_max: default_irrigation_max(),
             control_period_s: default_period(),
+            measurement_wait_s: default_measurement_wait(),
             actuator: Actuator::Simulated,
             simulation: Some(SimulationSpec::default()),
         }
@@ -299,6 +315,12 @@ impl FieldSpec {
             return Err(format!(
                 "control_period_s must be ≥ 60, got {}",
                 self.control_period_s
+            ));
+        }
+        let wait = self.measurement_wait_s;
+        if !(wait.is_finite() && wait >= 0.0 && wait <= self.control_period_s / 4.0) {
+            return Err(format!(
+                "measurement_wait_s must be in [0, control_period_s / 4], got {wait}"
             ));
         }
         if let Actuator::Webhook { url } = &self.actuator
@@ -475,8 +497,14 @@ pub struct Setpoint {
     /// Degraded modes: stale-measurement, no-measurement, default-forecast,
     /// solver-fallback.
     pub degraded: Vec<String>,
+    /// Time of the measurement the cycle started from (absent when it
+    /// started from a prediction or from nothing).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured_at: Option<DateTime<Utc>>,
     /// The bias correction in force.
     pub bias: f64,
-    /// The bias-free prediction of θ at `valid_until` (for the next bias fit).
-    pub predicted_next: f64,
+    /// The bias-free prediction of θ at `valid_until` (for the next bias
+    /// fit); absent when the cycle made none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub predicted_next: Option<f64>,
 }
