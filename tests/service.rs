@@ -353,6 +353,17 @@ fn api_stores_controls_and_rejects_bad_input() {
         422,
         "richards",
     );
+    problem(
+        curl(
+            &d,
+            "POST",
+            "/v1/fields",
+            Some(r#"{"name": "x", "measurement_wait_s": -1}"#),
+            Some(TOKEN),
+        ),
+        422,
+        "measurement_wait_s",
+    );
 
     // a resent measurement is stored once
     let r = curl(

@@ -256,7 +256,8 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) 
             _ = cancel.cancelled() => return,
         }
         if field.spec.actuator != Actuator::Simulated {
-            let wait = TimeDelta::milliseconds((field.spec.measurement_wait_s * 1000.0) as i64);
+            let wait =
+                TimeDelta::milliseconds((field.spec.effective_measurement_wait() * 1000.0) as i64);
             tokio::select! {
                 _ = measurement_at(&state, id, next, next + wait) => {}
                 _ = cancel.cancelled() => return,
