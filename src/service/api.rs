@@ -408,7 +408,7 @@ async fn post_measurements(
     .await?;
     state.metrics.measurements.inc_by(new as u64);
     if new > 0 {
-        state.measured.notify_waiters();
+        state.measured(field.id).notify_waiters();
     }
     if let Some(theta) = last {
         state

@@ -57,13 +57,26 @@ pub struct AppState {
     pub settings: Settings,
     /// Bounds the control cycles and simulations running at once.
     permits: Arc<Semaphore>,
-    /// Woken whenever measurements are stored (cycles waiting for theirs).
-    pub(crate) measured: tokio::sync::Notify,
+    /// Per field, woken when its measurements are stored (a cycle waiting
+    /// for its boundary's measurement).
+    measured: Mutex<HashMap<i64, Arc<tokio::sync::Notify>>>,
     /// Cancels a field's scheduled tasks (on delete or shutdown).
     field_tasks: Mutex<HashMap<i64, CancellationToken>>,
     shutdown: CancellationToken,
     tracker: TaskTracker,
     http: reqwest::Client,
+}
+
+impl AppState {
+    /// The notification of field `id`'s stored measurements.
+    pub(crate) fn measured(&self, id: i64) -> Arc<tokio::sync::Notify> {
+        self.measured
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .entry(id)
+            .or_default()
+            .clone()
+    }
 }
 
 /// A built daemon, ready to serve on its listener.
@@ -161,7 +174,7 @@ impl App {
             token,
             permits: Arc::new(Semaphore::new(settings.limits.worker_threads)),
             settings,
-            measured: tokio::sync::Notify::new(),
+            measured: Mutex::new(HashMap::new()),
             field_tasks: Mutex::new(HashMap::new()),
             shutdown: CancellationToken::new(),
             tracker: TaskTracker::new(),
@@ -241,6 +254,11 @@ pub(crate) fn stop_field(state: &AppState, id: i64) {
     {
         t.cancel();
     }
+    state
+        .measured
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .remove(&id);
     state.engine.forget(id);
 }
 
@@ -274,7 +292,8 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) 
 async fn measurement_at(state: &AppState, id: i64, at: DateTime<Utc>, until: DateTime<Utc>) {
     loop {
         // registered before the check, so a store in between is not missed
-        let stored = state.measured.notified();
+        let notify = state.measured(id);
+        let stored = notify.notified();
         tokio::pin!(stored);
         stored.as_mut().enable();
         let engine = state.engine.clone();
