@@ -578,10 +578,10 @@ impl Engine {
         let predicted_next = match one_step.as_mut() {
             Some(model) => model
                 .one_step(rate + rain_rate.first().copied().unwrap_or(0.0))
-                .unwrap_or(f64::NAN),
-            None => solution.predicted.first().copied().unwrap_or(f64::NAN),
-        };
-        let predicted_next = Some(predicted_next).filter(|p| p.is_finite());
+                .ok(),
+            None => solution.predicted.first().copied(),
+        }
+        .filter(|p| p.is_finite());
         let setpoint = Setpoint {
             field_id: field.id,
             time: now,
