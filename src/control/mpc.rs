@@ -60,7 +60,7 @@ pub struct MpcSettings {
     pub trust_region_knee: f64,
     /// The same for a warm-started run, which starts near the optimum.
     pub warm_trust_region_knee: f64,
-    /// SQP runs of a cold solve: the start and the `starts − 1` most
+    /// Most SQP runs of a solve: the start and the `starts − 1` most
     /// promising constant plans (see [`ZoneMpc::solve`]).
     pub starts: usize,
 }
@@ -80,7 +80,7 @@ impl Default for MpcSettings {
             step_tolerance: 1e-6,
             objective_tolerance: 1e-5,
             time_budget: Duration::from_secs(1),
-            starts: 2,
+            starts: 4,
             trust_region_knee: 1.0,
             warm_trust_region_knee: crate::surrogate::scaling::DEFAULT_U0,
         }
@@ -258,14 +258,16 @@ impl ZoneMpc {
     /// Solves the zone MPC for the state `model` holds.
     ///
     /// The problem is not convex (the model is not linear), so the SQP may
-    /// end in a local minimum. A controller that solved before starts from
-    /// its previous plan shifted by one step, and when that run converges its
-    /// plan is taken: the previous optimum lies in the basin of the new one.
-    /// Otherwise (the first solve, or a warm run that did not converge) the
-    /// SQP also runs from the most promising other starts: the constant
-    /// plans at 0, 20 %, 50 % and 100 % of the largest rate, ranked by their
+    /// end in a local minimum. The first run starts from the previous plan
+    /// shifted by one step (zero irrigation on the first solve). A new
+    /// measurement can move the optimum into another basin, so every solve
+    /// also runs from the most promising constant plans: 0, 0.2 %, 1 %, 5 %,
+    /// 20 %, 50 % and 100 % of the largest rate (spread over the logarithmic
+    /// scale on which the surrogates see the rate), ranked by their
     /// objective (one prediction each), up to `starts` runs in all while the
-    /// time budget lasts; the best plan wins.
+    /// time budget lasts; the best plan wins. After a converged warm run,
+    /// only constant plans whose objective is already lower are run, so a
+    /// solve in a steady state costs one run plus seven predictions.
     pub fn solve(&mut self, model: &mut dyn PredictionModel) -> Solution {
         let start = Instant::now();
         let s = self.settings;
@@ -283,15 +285,9 @@ impl ZoneMpc {
         if matches!(best.status, SolveStatus::Fallback(_)) {
             return best;
         }
-        if warm_started && best.status == SolveStatus::Converged {
-            // the shifted previous optimum lies in the basin of the new one
-            best.solve_time = start.elapsed();
-            self.previous = Some(best.plan.clone());
-            return best;
-        }
         let mut candidates: Vec<(f64, Vec<f64>)> = Vec::new();
         let mut y = vec![0.0; n];
-        for level in [0.0, 0.2, 0.5, 1.0] {
+        for level in [0.0, 0.002, 0.01, 0.05, 0.2, 0.5, 1.0] {
             let other = vec![level; n];
             if other == warm {
                 continue;
@@ -302,8 +298,14 @@ impl ZoneMpc {
             }
         }
         candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
-        for (_, other) in candidates.into_iter().take(s.starts.saturating_sub(1)) {
+        let warm_converged = warm_started && best.status == SolveStatus::Converged;
+        for (j0, other) in candidates.into_iter().take(s.starts.saturating_sub(1)) {
             if start.elapsed() > s.time_budget {
+                break;
+            }
+            // a converged warm run is beaten only from a start that is
+            // already better: the others are not worth an SQP run
+            if warm_converged && j0 >= best.objective {
                 break;
             }
             let sol = self.solve_from(model, other, start, s.trust_region_knee);

@@ -4,7 +4,9 @@
 //!
 //! 1. data: one multi-level set per sub-model inside its range, one impulse
 //!    set over the whole range, and a fresh validation set for each (output
-//!    noise 0.1 for training, 0.2 for validation, own seeds), cached;
+//!    noise 0.1 for training, 0.2 for validation, own seeds), cached; the
+//!    training input windows get extra noise up to the validation level
+//!    ([`noisier_windows`]), the targets do not;
 //! 2. M1, M2, M3, each on its own set;
 //! 3. the single LSTM benchmark on the impulse set;
 //! 4. the combiner M_A on the sub-models' free-running predictions over the
@@ -21,6 +23,9 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use super::dataset::{DatasetError, DatasetSpec, Excitation, Series, load_or_generate};
 use super::evaluate::recursive_nrmse;
@@ -67,6 +72,10 @@ pub struct TrainPlan {
     pub holdout: f64,
     /// Steps of the free-running prediction each training sample is scored on.
     pub horizon: usize,
+    /// Noise level, as a fraction of the whole range, that the training input
+    /// windows are brought up to (see [`noisier_windows`]); `None` leaves them
+    /// as measured.
+    pub window_noise: Option<f64>,
 }
 
 impl TrainPlan {
@@ -106,6 +115,7 @@ impl TrainPlan {
             },
             holdout: 0.15,
             horizon: HORIZON,
+            window_noise: Some(0.2),
         }
     }
 
@@ -141,6 +151,7 @@ impl TrainPlan {
             },
             holdout: 0.2,
             horizon: 10,
+            window_noise: Some(0.2),
         }
     }
 
@@ -370,6 +381,15 @@ pub fn run_training(
         let series = get(&plan.sub_model_data(i), &mut progress)?;
         let mut data = SequenceData::new(plan.horizon);
         let samples = data.push_series(&series.irrigation, &series.measured, &scaling);
+        if let Some(level) = plan.window_noise {
+            noisier_windows(
+                &mut data,
+                &series,
+                &scaling,
+                level,
+                plan.seed + 41 + i as u64,
+            );
+        }
         let (tr, va) = split(samples);
         let mut net = SequenceNet::new(&plan.sub_model_hidden[i], plan.seed + 11 + i as u64);
         let name = ["M1", "M2", "M3"][i];
@@ -405,6 +425,9 @@ pub fn run_training(
     let impulse = get(&plan.impulse_data(), &mut progress)?;
     let mut data = SequenceData::new(plan.horizon);
     let samples = data.push_series(&impulse.irrigation, &impulse.measured, &scaling);
+    if let Some(level) = plan.window_noise {
+        noisier_windows(&mut data, &impulse, &scaling, level, plan.seed + 44);
+    }
     let (tr, va) = split(samples);
     let whole_train = Split {
         data: &data,
@@ -598,6 +621,51 @@ pub fn run_training(
     })
 }
 
+/// Gives the input windows of `data` (one series, already pushed) noise of
+/// the variance of Uniform(±`level`·(y_max − y_min)) over the whole range,
+/// by adding independent uniform noise to the measured outputs they read;
+/// the targets stay as measured.
+///
+/// The measurements a network is given in use (the validation sets: 0.2 of
+/// the range, MODEL.md §2) are noisier than its training data (0.1 of its own
+/// set's range); a network that saw only the training noise follows the
+/// window's last samples too closely. The extra amplitude `a` makes the
+/// variances add up: a² = (level·R)² − (noise of the set)², in scaled units.
+pub fn noisier_windows(
+    data: &mut SequenceData,
+    series: &Series,
+    scaling: &Scaling,
+    level: f64,
+    seed: u64,
+) {
+    let (min, max) = series
+        .water_content
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    let own = series
+        .measured
+        .iter()
+        .zip(&series.water_content)
+        .map(|(m, y)| (m - y).abs())
+        .fold(0.0, f64::max);
+    let whole = level * (WHOLE_RANGE.1 - WHOLE_RANGE.0).max(max - min);
+    let extra = (whole * whole - own * own).max(0.0).sqrt() / scaling.output.span();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let start = data.y.len() - series.len();
+    // earlier series keep their windows (as measured, or made noisier before)
+    if data.y_input.len() < start {
+        data.y_input = data.y[..start].to_vec();
+    }
+    data.y_input.truncate(start);
+    data.y_input.extend(
+        data.y[start..]
+            .iter()
+            .map(|&y| y + extra * (2.0 * rng.random::<f64>() - 1.0)),
+    );
+}
+
 /// One line describing a data set (for model files and reports).
 pub fn describe(spec: &DatasetSpec) -> String {
     let (low, high) = spec.excitation.range();
@@ -625,13 +693,20 @@ fn training_report(
         "Soil {soil}, seed {}, {:.1} s in all (data generation included). \
          Training samples: {} per sub-model, {} impulse; validation sets of {} \
          samples (output noise 0.2 of the range, seeds of their own); each \
-         sample scored on a free-running {}-step prediction.\n",
+         sample scored on a free-running {}-step prediction. {}\n",
         plan.seed,
         seconds,
         plan.sub_model_samples,
         plan.impulse_samples,
         plan.validation_samples,
-        plan.horizon
+        plan.horizon,
+        match plan.window_noise {
+            Some(level) => format!(
+                "The input windows are brought to the noise of Uniform(±{level} of \
+                 the whole range) by extra uniform noise; the targets stay as measured."
+            ),
+            None => "The input windows are as measured.".to_string(),
+        }
     );
     let _ = writeln!(
         s,
@@ -663,4 +738,63 @@ fn training_report(
         let _ = writeln!(s, "| {file} | {:.4} | {:.4} | {:.4} |", v[0], v[1], v[2]);
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A synthetic series: a slow sine over [0.15, 0.35] with uniform output
+    /// noise of ±`noise`.
+    fn series(len: usize, noise: f64, seed: u64) -> Series {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let water_content: Vec<f64> = (0..len)
+            .map(|k| 0.25 + 0.1 * (k as f64 / 50.0).sin())
+            .collect();
+        let measured = water_content
+            .iter()
+            .map(|y| y + noise * (2.0 * rng.random::<f64>() - 1.0))
+            .collect();
+        Series {
+            irrigation: vec![1e-7; len],
+            water_content,
+            measured,
+        }
+    }
+
+    #[test]
+    fn noisier_windows_reach_the_requested_noise_and_leave_the_targets() {
+        let scaling = Scaling::default();
+        let span = scaling.output.span();
+        // range of the clean series 0.2 < the whole range 0.28: the level
+        // refers to the whole range
+        let first = series(40_000, 0.02, 1);
+        let second = series(30_000, 0.01, 2);
+        let mut data = SequenceData::new(HORIZON);
+        data.push_series(&first.irrigation, &first.measured, &scaling);
+        let targets_before = data.y.clone();
+        noisier_windows(&mut data, &first, &scaling, 0.2, 9);
+        data.push_series(&second.irrigation, &second.measured, &scaling);
+        noisier_windows(&mut data, &second, &scaling, 0.2, 10);
+        assert_eq!(data.y[..first.len()], targets_before[..]);
+        assert_eq!(data.y_input.len(), data.y.len());
+        // window noise against the clean output: variance of Uniform(±0.2·0.28)
+        let want = (0.2f64 * 0.28).powi(2) / 3.0;
+        for (offset, s) in [(0, &first), (first.len(), &second)] {
+            let n = s.len() as f64;
+            let (mut mean, mut var) = (0.0, 0.0);
+            for (k, y) in s.water_content.iter().enumerate() {
+                let e = data.y_input[offset + k] * span + scaling.output.y_min - y;
+                mean += e / n;
+                var += e * e / n;
+            }
+            assert!(mean.abs() < 1e-3, "{mean}");
+            assert!((var / want - 1.0).abs() < 0.03, "{var} vs {want}");
+        }
+        // the same seed gives the same windows
+        let mut again = SequenceData::new(HORIZON);
+        again.push_series(&first.irrigation, &first.measured, &scaling);
+        noisier_windows(&mut again, &first, &scaling, 0.2, 9);
+        assert_eq!(again.y_input[..], data.y_input[..first.len()]);
+    }
 }

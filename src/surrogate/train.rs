@@ -46,6 +46,9 @@ pub struct SequenceData {
     pub y: Vec<f64>,
     /// Steps H of the recursive prediction each sample is scored on.
     pub horizon: usize,
+    /// Outputs the input windows read instead of `y` (same length), or empty
+    /// when the windows read `y` itself.
+    pub y_input: Vec<f64>,
 }
 
 impl Default for SequenceData {
@@ -61,6 +64,7 @@ impl SequenceData {
             u: Vec::new(),
             y: Vec::new(),
             horizon: horizon.max(1),
+            y_input: Vec::new(),
         }
     }
 
@@ -75,6 +79,9 @@ impl SequenceData {
         let start = self.u.len();
         self.u.extend(u.iter().map(|&v| scaling.input.scale(v)));
         self.y.extend(y.iter().map(|&v| scaling.output.scale(v)));
+        if !self.y_input.is_empty() {
+            self.y_input.extend_from_slice(&self.y[start..]);
+        }
         sample_indices(u.len(), self.horizon)
             .into_iter()
             .map(|k| k + start)
@@ -87,7 +94,16 @@ impl SequenceData {
         let s0 = k + 1 - WINDOW;
         for (tau, pair) in x.chunks_exact_mut(FEATURES).take(WINDOW - 1).enumerate() {
             pair[0] = self.u[s0 + tau];
-            pair[1] = self.y[s0 + tau - 1];
+            pair[1] = self.window_y(s0 + tau - 1);
+        }
+    }
+
+    /// The output at step i as an input window sees it.
+    fn window_y(&self, i: usize) -> f64 {
+        if self.y_input.is_empty() {
+            self.y[i]
+        } else {
+            self.y_input[i]
         }
     }
 }
@@ -122,7 +138,7 @@ fn roll_sample(
         net.advance(w, 0, WINDOW - 1);
     }
     let mut combiner = combiner;
-    let mut prev = [data.y[k - 1]; COMBINER_INPUTS];
+    let mut prev = [data.window_y(k - 1); COMBINER_INPUTS];
     for q in 0..h {
         let t = WINDOW - 1 + q;
         let mut z = [0.0; COMBINER_INPUTS];
@@ -243,7 +259,7 @@ impl Trainable for SequenceNet {
         data.warm_up(k, &mut ws.x);
         self.advance(ws, 0, WINDOW - 1);
         ws.dout[..WINDOW - 1].fill(0.0);
-        let mut prev = data.y[k - 1];
+        let mut prev = data.window_y(k - 1);
         let mut loss = 0.0;
         for q in 0..h {
             let t = WINDOW - 1 + q;
