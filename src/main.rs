@@ -66,6 +66,12 @@ enum Command {
         /// Folder of the generated-data cache.
         #[arg(long, default_value = "data/cache")]
         cache: PathBuf,
+        /// Bring the training input windows up to the noise of Uniform(±LEVEL
+        /// of the whole range), the validation data's noise by default; the
+        /// targets stay as measured. 0 leaves the windows as measured (see
+        /// ARCHITECTURE.md).
+        #[arg(long, value_name = "LEVEL", default_value = "0.2", value_parser = parse_window_noise)]
+        window_noise: f64,
     },
     /// Reproduce one of the paper's experiments (tables as Markdown and CSV, figures as SVG).
     Experiment {
@@ -142,9 +148,10 @@ fn main() -> ExitCode {
             seed,
             quick,
             cache,
+            window_noise,
         } => (|| {
             let soil: Texture = soil.parse()?;
-            train(soil, &out, seed, quick, &cache)
+            train(soil, &out, seed, quick, window_noise, &cache)
         })(),
         Command::Experiment {
             id,
@@ -182,19 +189,35 @@ fn main() -> ExitCode {
     }
 }
 
+/// `--window-noise`: a fraction of the range in [0, 1].
+fn parse_window_noise(text: &str) -> Result<f64, String> {
+    let level: f64 = text
+        .parse()
+        .map_err(|_| format!("'{text}' is not a number"))?;
+    if (0.0..=1.0).contains(&level) {
+        Ok(level)
+    } else {
+        Err(format!("{level} is not a fraction of the range in [0, 1]"))
+    }
+}
+
 /// `rootzone train`: one progress bar per network.
 fn train(
     soil: Texture,
     out: &std::path::Path,
     seed: u64,
     quick: bool,
+    window_noise: f64,
     cache: &std::path::Path,
 ) -> anyhow::Result<()> {
     use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
-    let plan = if quick {
-        TrainPlan::quick(seed)
-    } else {
-        TrainPlan::full(seed)
+    let plan = TrainPlan {
+        window_noise: (window_noise > 0.0).then_some(window_noise),
+        ..if quick {
+            TrainPlan::quick(seed)
+        } else {
+            TrainPlan::full(seed)
+        }
     };
     let bars = MultiProgress::new();
     let style = ProgressStyle::with_template(

@@ -186,15 +186,14 @@ fn excess_over_slow(
         .into_iter()
         .map(|s| slow_optimum(settings, model, s))
         .fold(f64::INFINITY, f64::min);
-    let excess = (j_sqp - j_slow) / j_slow.max(1e-9);
     assert!(
-        excess <= 5e-3,
+        j_sqp <= j_slow * 1.001 + 1e-9,
         "{label}: SQP {j_sqp} vs slow {j_slow} ({:?}, {} iterations, plan {:?})",
         sol.status,
         sol.iterations,
         ubar.iter().map(|v| format!("{v:.2e}")).collect::<Vec<_>>()
     );
-    excess
+    (j_sqp - j_slow) / j_slow.max(1e-9)
 }
 
 #[test]
@@ -203,13 +202,12 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
     let file = ModelFile::load(&path).unwrap();
     let settings = MpcSettings::default();
     let mut rng = ChaCha8Rng::seed_from_u64(2024);
-    // The problem is not convex: on the trained network each small rate can
-    // sit in one of two basins (off, or near the rate that holds the zone),
-    // so both optimisers find local optima, and the slow one, from its three
-    // starts, sometimes lands in a slightly better basin than the SQP's four.
-    // Required: every SQP objective within 0.5 % of the slow optimiser's and
-    // at least 18 of the 20 within 0.1 %.
-    let mut excesses = Vec::new();
+    let mut worst: f64 = 0.0;
+    // The problem is not convex, so the SQP runs from several starts. The
+    // warm problems are where the shifted previous plan can sit in a poor
+    // basin after a new measurement: on networks trained on noisier windows
+    // (as the shipped ones are), 4× above the slow optimiser until the SQP
+    // also tried the constant starts after a converged warm run.
     // ten windows, each solved cold (multi-start) and then, one step later,
     // warm-started from the shifted plan as in the closed loop: 20 problems
     for problem in 0..10 {
@@ -231,7 +229,7 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
         let mut mpc = ZoneMpc::new(settings);
         let cold = mpc.solve(&mut model);
         let label = format!("problem {problem} (cold)");
-        excesses.push(excess_over_slow(
+        worst = worst.max(excess_over_slow(
             &settings, &mut model, &cold, &mut rng, &label,
         ));
         // the first move applied, a measurement 0.003 off the prediction
@@ -241,14 +239,11 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
         );
         let warm = mpc.solve(&mut model);
         let label = format!("problem {problem} (warm)");
-        excesses.push(excess_over_slow(
+        worst = worst.max(excess_over_slow(
             &settings, &mut model, &warm, &mut rng, &label,
         ));
     }
-    let worst = excesses.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let close = excesses.iter().filter(|&&e| e <= 1e-3).count();
-    eprintln!("relative excess of the SQP objective: largest {worst:e}, {close} of 20 within 1e-3");
-    assert!(close >= 18, "{excesses:?}");
+    eprintln!("largest relative excess of the SQP objective: {worst:e}");
 }
 
 struct Broken;
