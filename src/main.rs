@@ -67,11 +67,11 @@ enum Command {
         #[arg(long, default_value = "data/cache")]
         cache: PathBuf,
         /// Bring the training input windows up to the noise of Uniform(±LEVEL
-        /// of the whole range), the validation data's noise by default; the
-        /// targets stay as measured. 0 leaves the windows as measured (see
-        /// ARCHITECTURE.md).
-        #[arg(long, value_name = "LEVEL", default_value = "0.2", value_parser = parse_window_noise)]
-        window_noise: f64,
+        /// of the whole range); the targets stay as measured. Default: the
+        /// plan's level, 0.2 (the validation data's noise); 0 leaves the
+        /// windows as measured (see ARCHITECTURE.md).
+        #[arg(long, value_name = "LEVEL", value_parser = parse_window_noise)]
+        window_noise: Option<f64>,
     },
     /// Reproduce one of the paper's experiments (tables as Markdown and CSV, figures as SVG).
     Experiment {
@@ -207,18 +207,18 @@ fn train(
     out: &std::path::Path,
     seed: u64,
     quick: bool,
-    window_noise: f64,
+    window_noise: Option<f64>,
     cache: &std::path::Path,
 ) -> anyhow::Result<()> {
     use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
-    let plan = TrainPlan {
-        window_noise: (window_noise > 0.0).then_some(window_noise),
-        ..if quick {
-            TrainPlan::quick(seed)
-        } else {
-            TrainPlan::full(seed)
-        }
+    let mut plan = if quick {
+        TrainPlan::quick(seed)
+    } else {
+        TrainPlan::full(seed)
     };
+    if let Some(level) = window_noise {
+        plan.window_noise = (level > 0.0).then_some(level);
+    }
     let bars = MultiProgress::new();
     let style = ProgressStyle::with_template(
         "{prefix:>18} [{bar:30}] {pos:>3}/{len:3} epochs {msg} ({elapsed})",

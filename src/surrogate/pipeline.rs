@@ -373,6 +373,16 @@ pub fn run_training(
         load_or_generate(spec, soil_name, &settings, weather.steps(), cache_dir)
     };
     let split = |samples: Vec<usize>| holdout(&samples, plan.holdout);
+    // appends a series and gives its input windows the plan's noise, drawn
+    // from `noise_seed`: the same seed gives the same windows
+    let push_windows = |data: &mut SequenceData, series: &Series, noise_seed: u64| {
+        let samples = data.push_series(&series.irrigation, &series.measured, &scaling);
+        if let Some(level) = plan.window_noise {
+            noisier_windows(data, series, &scaling, level, noise_seed);
+        }
+        samples
+    };
+    let sub_model_noise_seed = |i: usize| plan.seed + 41 + i as u64;
 
     // 1–2: sub-models
     let mut networks = Vec::new();
@@ -381,17 +391,7 @@ pub fn run_training(
     for i in 0..3 {
         let series = get(&plan.sub_model_data(i), &mut progress)?;
         let mut data = SequenceData::new(plan.horizon);
-        let samples = data.push_series(&series.irrigation, &series.measured, &scaling);
-        if let Some(level) = plan.window_noise {
-            noisier_windows(
-                &mut data,
-                &series,
-                &scaling,
-                level,
-                plan.seed + 41 + i as u64,
-            );
-        }
-        let (tr, va) = split(samples);
+        let (tr, va) = split(push_windows(&mut data, &series, sub_model_noise_seed(i)));
         let mut net = SequenceNet::new(&plan.sub_model_hidden[i], plan.seed + 11 + i as u64);
         let name = ["M1", "M2", "M3"][i];
         let (report, seconds) = fit(
@@ -426,11 +426,7 @@ pub fn run_training(
     // 3: the single LSTM on the impulse data
     let impulse = get(&plan.impulse_data(), &mut progress)?;
     let mut data = SequenceData::new(plan.horizon);
-    let samples = data.push_series(&impulse.irrigation, &impulse.measured, &scaling);
-    if let Some(level) = plan.window_noise {
-        noisier_windows(&mut data, &impulse, &scaling, level, plan.seed + 44);
-    }
-    let (tr, va) = split(samples);
+    let (tr, va) = split(push_windows(&mut data, &impulse, plan.seed + 44));
     let whole_train = Split {
         data: &data,
         samples: &tr,
@@ -507,30 +503,23 @@ pub fn run_training(
     // their own training): the two-layer network is trained on all of its data
     let (mut joint_data, mut joint_tr, mut joint_va) = (data.clone(), tr.clone(), va.clone());
     for (i, series) in sub_series.iter().enumerate() {
-        let samples = joint_data.push_series(&series.irrigation, &series.measured, &scaling);
-        if let Some(level) = plan.window_noise {
-            noisier_windows(
-                &mut joint_data,
-                series,
-                &scaling,
-                level,
-                plan.seed + 41 + i as u64,
-            );
-        }
-        let (a, b) = split(samples);
+        let (a, b) = split(push_windows(
+            &mut joint_data,
+            series,
+            sub_model_noise_seed(i),
+        ));
         joint_tr.extend(a);
         joint_va.extend(b);
     }
-    let joint_data = &joint_data;
     let (report, seconds) = fit(
         "two-layer (joint)",
         &mut joint,
         Split {
-            data: joint_data,
+            data: &joint_data,
             samples: &joint_tr,
         },
         Split {
-            data: joint_data,
+            data: &joint_data,
             samples: &joint_va,
         },
         &plan.joint_config,
