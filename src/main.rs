@@ -286,7 +286,7 @@ fn serve(config: Option<PathBuf>) -> anyhow::Result<()> {
         .enable_all()
         .max_blocking_threads(settings.limits.worker_threads.max(1) + 4)
         .build()?;
-    runtime.block_on(async move {
+    let outcome = runtime.block_on(async move {
         let token_source = if settings.api_token.is_some() {
             "from the configuration".to_string()
         } else {
@@ -315,8 +315,12 @@ fn serve(config: Option<PathBuf>) -> anyhow::Result<()> {
         }
         app.run(shutdown_signal()).await?;
         say("rootzone stopped".into());
-        Ok(())
-    })
+        Ok::<(), anyhow::Error>(())
+    });
+    // a blocking task that did not stop within the grace period (it cannot
+    // be cancelled from outside) must not hold the process
+    runtime.shutdown_timeout(std::time::Duration::from_secs(1));
+    outcome
 }
 
 /// `rootzone field-sim`: the separate field simulator.

@@ -364,3 +364,133 @@ fn richards_jacobian_from_integrator_tangents_matches_finite_differences() {
     }
     eprintln!("largest difference / largest entry: {worst:e}");
 }
+
+/// The time budget binds every part of a solve: a Richards-model solve on a
+/// soil whose trial plans pond the surface ends within its budget plus the
+/// cost of one integration of one sampling step, and says how it ended.
+#[test]
+fn the_time_budget_binds_richards_solves_on_every_texture() {
+    use rootzone::control::RichardsModel;
+    use rootzone::soil::{Field, FieldSettings, Forcing, Texture};
+    use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
+    use std::time::{Duration, Instant};
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
+    let budget = Duration::from_millis(150);
+    for texture in Texture::ALL {
+        let soil = texture.parameters();
+        let field = Field::new(FieldSettings {
+            soil,
+            ..FieldSettings::default()
+        })
+        .unwrap();
+        // the cost of one sampling step's integration at the largest rate
+        // from this state (where the integrator works hardest)
+        let mut integrator = field.integrator().clone();
+        let mut state = field.state().clone();
+        let clock = Instant::now();
+        let _ = integrator.advance(
+            &mut state,
+            0.0,
+            7200.0,
+            Forcing {
+                irrigation: 1e-5,
+                ..weather.steps()[0].forcing(0.0, 7200.0)
+            },
+        );
+        let one_step = clock.elapsed();
+        let settings = MpcSettings {
+            zone: ZoneSettings::default_for(&soil),
+            theta_r: soil.residual_water_content,
+            theta_s: soil.saturated_water_content,
+            time_budget: budget,
+            ..MpcSettings::default()
+        };
+        let mut model = RichardsModel::new(&field, &weather.steps()[..20]);
+        let clock = Instant::now();
+        let solution = ZoneMpc::new(settings).solve(&mut model);
+        let wall = clock.elapsed();
+        // slack for the QP and the bookkeeping after the last evaluation
+        let limit = budget + one_step + Duration::from_millis(30);
+        assert!(
+            wall <= limit,
+            "{texture}: solve took {wall:?}, budget {budget:?} + one step {one_step:?}"
+        );
+        assert!(solution.solve_time <= wall);
+        assert_eq!(solution.plan.len(), 20);
+        assert!(solution.plan.iter().all(|u| (0.0..=1e-5).contains(u)));
+        // a solve that ran out says so
+        if wall > budget + Duration::from_millis(5) {
+            assert!(
+                matches!(
+                    solution.status,
+                    SolveStatus::TimeBudget | SolveStatus::Fallback(_)
+                ),
+                "{texture}: {:?} after {wall:?}",
+                solution.status
+            );
+        }
+    }
+}
+
+/// A set cancel flag ends a solve as its budget would.
+#[test]
+fn a_cancelled_solve_stops_at_once() {
+    use rootzone::control::RichardsModel;
+    use rootzone::soil::{Field, FieldSettings, Texture};
+    use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
+    use std::sync::Arc;
+    use std::sync::atomic::AtomicBool;
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
+    let soil = Texture::Clay.parameters();
+    let field = Field::new(FieldSettings {
+        soil,
+        ..FieldSettings::default()
+    })
+    .unwrap();
+    let mut mpc = ZoneMpc::new(MpcSettings {
+        zone: ZoneSettings::default_for(&soil),
+        theta_r: soil.residual_water_content,
+        theta_s: soil.saturated_water_content,
+        time_budget: std::time::Duration::from_secs(30),
+        ..MpcSettings::default()
+    });
+    mpc.set_cancel(Some(Arc::new(AtomicBool::new(true))));
+    let mut model = RichardsModel::new(&field, &weather.steps()[..20]);
+    let solution = mpc.solve(&mut model);
+    assert!(solution.solve_time < std::time::Duration::from_secs(1));
+    let SolveStatus::Fallback(reason) = &solution.status else {
+        panic!("expected a fallback, got {:?}", solution.status);
+    };
+    assert!(reason.contains("time budget"), "{reason}");
+    assert_eq!(solution.plan, vec![0.0; 20]);
+}
+
+/// The default zone of a soil is the sandy-loam head band in that soil
+/// (MODEL.md §4), and [0.18, 0.23] for the sandy loam itself.
+#[test]
+fn default_zones_are_the_head_band_of_each_soil() {
+    use rootzone::soil::{Texture, VanGenuchten};
+    let sandy = ZoneSettings::default_for(&VanGenuchten::SANDY_LOAM);
+    assert_eq!((sandy.low0, sandy.up0), (0.18, 0.23));
+    // the band is what the heads give in sandy loam, to the rounding of 0.18/0.23
+    let s = VanGenuchten::SANDY_LOAM;
+    assert!((s.water_content(-0.43) - 0.18).abs() < 2e-3);
+    assert!((s.water_content(-0.27) - 0.23).abs() < 2e-3);
+    for texture in Texture::ALL {
+        let soil = texture.parameters();
+        let z = ZoneSettings::default_for(&soil);
+        assert!(z.problem().is_none(), "{texture}");
+        if texture != Texture::SandyLoam {
+            // back through the inverse retention: the heads again
+            assert!(
+                (soil.pressure_head_at(z.low0) + 0.43).abs() < 1e-9,
+                "{texture}"
+            );
+            assert!(
+                (soil.pressure_head_at(z.up0) + 0.27).abs() < 1e-9,
+                "{texture}"
+            );
+        }
+        assert!(z.low0 < z.up0 && z.low0 > soil.residual_water_content);
+    }
+}

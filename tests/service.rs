@@ -58,6 +58,17 @@ fn curl(
     body: Option<&str>,
     token: Option<&str>,
 ) -> (u16, String, String) {
+    curl_at(&d.base, method, path, body, token)
+}
+
+/// [`curl`] against the daemon at `base` (from another thread).
+fn curl_at(
+    base: &str,
+    method: &str,
+    path: &str,
+    body: Option<&str>,
+    token: Option<&str>,
+) -> (u16, String, String) {
     let mut cmd = Command::new("curl");
     cmd.args(["-s", "-X", method, "-w", "\n%{http_code}\n%{content_type}"]);
     if let Some(t) = token {
@@ -72,7 +83,7 @@ fn curl(
         ]);
         cmd.stdin(Stdio::piped());
     }
-    cmd.arg(format!("{}{path}", d.base));
+    cmd.arg(format!("{base}{path}"));
     cmd.stdout(Stdio::piped());
     let mut child = cmd.spawn().expect("curl runs");
     if let Some(b) = body {
@@ -576,4 +587,90 @@ initial_head = -0.2
         .2,
     );
     assert!(measured.as_array().unwrap().len() >= 100);
+}
+
+/// A field whose cycles cannot finish within their solve budget (a clay
+/// field under the Richards model, dry: its trial plans pond the surface)
+/// gets a setpoint that says how its solve ended, does not hold up another
+/// field's cycle, and does not hold up SIGTERM.
+#[test]
+fn a_field_that_cannot_finish_blocks_neither_others_nor_shutdown() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut d = start(dir.path(), &config(""));
+    let create = |body: &str| -> i64 {
+        let r = curl(&d, "POST", "/v1/fields", Some(body), Some(TOKEN));
+        assert_eq!(r.0, 201, "{}", r.2);
+        json_of(&r.2)["id"].as_i64().unwrap()
+    };
+    let stuck = create(r#"{"name": "clay", "model": "richards", "soil": "clay"}"#);
+    let other = create(r#"{"name": "sandy", "model": "two-layer"}"#);
+    for (id, theta) in [(stuck, 0.30), (other, 0.20)] {
+        let m = format!(r#"{{"time": "{}", "theta": {theta}}}"#, now_minus(1));
+        let r = curl(
+            &d,
+            "POST",
+            &format!("/v1/fields/{id}/measurements"),
+            Some(&m),
+            Some(TOKEN),
+        );
+        assert_eq!(r.0, 201, "{}", r.2);
+    }
+    let base = d.base.clone();
+    let slow = std::thread::spawn(move || {
+        let path = format!("/v1/fields/{stuck}/control");
+        curl_at(&base, "POST", &path, None, Some(TOKEN))
+    });
+    // the other field's cycle is answered while the stuck one still runs
+    let r = curl(
+        &d,
+        "POST",
+        &format!("/v1/fields/{other}/control"),
+        None,
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 200, "{}", r.2);
+    assert!(
+        !slow.is_finished(),
+        "the other field's cycle waited for the stuck one"
+    );
+    let r = slow.join().unwrap();
+    assert_eq!(r.0, 200, "{}", r.2);
+    let setpoint = json_of(&r.2);
+    let status = setpoint["status"].as_str().unwrap();
+    assert!(
+        ["time-budget", "fallback", "converged", "iteration-cap"].contains(&status),
+        "{setpoint}"
+    );
+    // the solve ran into its 1-s budget, no further than one sampling step
+    let solve_ms = setpoint["solve_ms"].as_f64().unwrap();
+    assert!(solve_ms > 100.0 && solve_ms < 2_000.0, "{setpoint}");
+    if status == "fallback" {
+        assert!(setpoint["fallback_reason"].as_str().is_some(), "{setpoint}");
+    }
+    // SIGTERM while the stuck field's next cycle runs: a clean exit soon
+    let base = d.base.clone();
+    let again = std::thread::spawn(move || {
+        let path = format!("/v1/fields/{stuck}/control");
+        curl_at(&base, "POST", &path, None, Some(TOKEN))
+    });
+    std::thread::sleep(Duration::from_millis(200));
+    let pid = d.child.id().to_string();
+    let sent = Instant::now();
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    let deadline = sent + Duration::from_secs(8);
+    loop {
+        if let Some(status) = d.child.try_wait().unwrap() {
+            assert!(status.success(), "{status:?}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "no exit within 8 s of SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = again.join();
 }

@@ -1,6 +1,6 @@
 //! Prediction models behind one interface.
 
-use crate::soil::{ColumnState, Field, Forcing, Integrator};
+use crate::soil::{ColumnState, Field, Forcing, Integrator, Interrupt};
 use crate::surrogate::Predictor;
 use crate::surrogate::evaluate::WINDOW;
 use crate::weather::WeatherStep;
@@ -21,6 +21,11 @@ pub trait PredictionModel: Send {
         out: &mut [f64],
         jac: &mut [f64],
     ) -> Result<(), ModelError>;
+
+    /// A check an evaluation makes while it runs: once it returns true the
+    /// evaluation is abandoned with an error (the zone MPC's time budget, a
+    /// shutdown). Models whose evaluation is short and bounded ignore it.
+    fn set_interrupt(&mut self, _interrupt: Option<Interrupt>) {}
 }
 
 /// A surrogate ([`Predictor`]) with its window of applied inputs and measured
@@ -239,5 +244,9 @@ impl PredictionModel for RichardsModel {
         jac: &mut [f64],
     ) -> Result<(), ModelError> {
         self.run(plan, out, Some(jac))
+    }
+
+    fn set_interrupt(&mut self, interrupt: Option<Interrupt>) {
+        self.integrator.set_interrupt(interrupt);
     }
 }

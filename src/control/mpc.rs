@@ -25,6 +25,8 @@
 //! `step_tolerance` or the predicted decrease is negligible (converged), at
 //! the iteration cap, or at the time budget, and always returns the best plan evaluated.
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use clarabel::algebra::CscMatrix;
@@ -34,6 +36,7 @@ use clarabel::solver::{
 
 use super::model::PredictionModel;
 use super::zone::ZoneSettings;
+use crate::soil::Interrupt;
 
 /// Settings of the zone MPC (defaults: MODEL.md §4).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -184,6 +187,9 @@ pub struct ZoneMpc {
     pub settings: MpcSettings,
     previous: Option<Vec<f64>>,
     qp: QpCache,
+    /// Set from outside (a shutdown): the running solve stops as at its
+    /// time budget.
+    cancel: Option<Arc<AtomicBool>>,
 }
 
 /// The QP solver of the last subproblem: its sparsity pattern is the same
@@ -223,7 +229,23 @@ impl ZoneMpc {
             settings,
             previous: None,
             qp: QpCache::default(),
+            cancel: None,
         }
+    }
+
+    /// A flag that, once set, ends the running and every later solve as if
+    /// its time budget had run out.
+    pub fn set_cancel(&mut self, cancel: Option<Arc<AtomicBool>>) {
+        self.cancel = cancel;
+    }
+
+    /// Whether the solve that started at `start` must stop.
+    fn out_of_time(&self, start: Instant) -> bool {
+        start.elapsed() > self.settings.time_budget
+            || self
+                .cancel
+                .as_ref()
+                .is_some_and(|c| c.load(Ordering::Relaxed))
     }
 
     /// The previous plan shifted by one step (last entry repeated), scaled
@@ -270,6 +292,19 @@ impl ZoneMpc {
     /// solve in a steady state costs one run plus seven predictions.
     pub fn solve(&mut self, model: &mut dyn PredictionModel) -> Solution {
         let start = Instant::now();
+        // every model evaluation is bound by the budget: one that runs past
+        // it is abandoned, and the solve keeps its best iterate
+        let deadline = start + self.settings.time_budget;
+        let cancel = self.cancel.clone();
+        model.set_interrupt(Some(Interrupt::new(move || {
+            Instant::now() > deadline || cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed))
+        })));
+        let solution = self.solve_within(model, start);
+        model.set_interrupt(None);
+        solution
+    }
+
+    fn solve_within(&mut self, model: &mut dyn PredictionModel, start: Instant) -> Solution {
         let s = self.settings;
         let n = s.horizon;
         let warm = self.warm_start();
@@ -300,7 +335,7 @@ impl ZoneMpc {
         candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
         let warm_converged = warm_started && best.status == SolveStatus::Converged;
         for (j0, other) in candidates.into_iter().take(s.starts.saturating_sub(1)) {
-            if start.elapsed() > s.time_budget {
+            if self.out_of_time(start) {
                 break;
             }
             // a converged warm run is beaten only from a start that is
@@ -352,7 +387,12 @@ impl ZoneMpc {
             }
         };
         if let Err(e) = model.predict_with_jacobian(&raw(&ubar), &mut y, &mut jac) {
-            return fallback(self, &ubar, e.to_string(), 0);
+            let reason = if self.out_of_time(start) {
+                format!("time budget of {:?} ran out: {e}", s.time_budget)
+            } else {
+                e.to_string()
+            };
+            return fallback(self, &ubar, reason, 0);
         }
         let mut j = objective(&s, &y, &ubar);
         let metric = TrustMetric::new(knee / s.u_max);
@@ -361,7 +401,7 @@ impl ZoneMpc {
         let mut iterations = 0;
         let mut trial_y = vec![0.0; n];
         while iterations < s.max_iterations {
-            if start.elapsed() > s.time_budget {
+            if self.out_of_time(start) {
                 status = SolveStatus::TimeBudget;
                 break;
             }
@@ -395,8 +435,16 @@ impl ZoneMpc {
                     .predict_with_jacobian(&raw(&ubar), &mut y, &mut jac)
                     .is_err()
                 {
-                    // cannot happen for a model that just predicted this plan
-                    status = SolveStatus::Fallback("model failed at an accepted plan".into());
+                    // the model just predicted this plan, so only the budget
+                    // running out in the evaluation gets here: keep the plan
+                    // with that prediction
+                    y.copy_from_slice(&trial_y);
+                    j = trial;
+                    status = if self.out_of_time(start) {
+                        SolveStatus::TimeBudget
+                    } else {
+                        SolveStatus::Fallback("model failed at an accepted plan".into())
+                    };
                     break;
                 }
                 j = objective(&s, &y, &ubar);

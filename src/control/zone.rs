@@ -29,7 +29,40 @@ impl Default for ZoneSettings {
     }
 }
 
+/// The pressure heads [m] of MODEL.md §4's zone: [0.18, 0.23] is the
+/// sandy-loam water content between them.
+pub const DEFAULT_ZONE_HEADS: (f64, f64) = (-0.43, -0.27);
+
 impl ZoneSettings {
+    /// A time-invariant zone between two water contents.
+    pub fn band(low: f64, up: f64) -> ZoneSettings {
+        ZoneSettings {
+            low0: low,
+            up0: up,
+            y_low: low,
+            y_up: up,
+            mu: 0.0,
+        }
+    }
+
+    /// The time-invariant zone of `soil` between two pressure heads [m]
+    /// (low_head < up_head ≤ 0): the water contents θ(low_head) … θ(up_head).
+    pub fn from_heads(soil: &crate::soil::VanGenuchten, low_head: f64, up_head: f64) -> Self {
+        ZoneSettings::band(soil.water_content(low_head), soil.water_content(up_head))
+    }
+
+    /// A soil's default zone (MODEL.md §4): [0.18, 0.23] for the sandy loam
+    /// of MODEL.md §1, else the water contents of the heads
+    /// [`DEFAULT_ZONE_HEADS`] in that soil.
+    pub fn default_for(soil: &crate::soil::VanGenuchten) -> ZoneSettings {
+        if *soil == crate::soil::VanGenuchten::SANDY_LOAM {
+            ZoneSettings::default()
+        } else {
+            let (low, up) = DEFAULT_ZONE_HEADS;
+            ZoneSettings::from_heads(soil, low, up)
+        }
+    }
+
     /// (low_k, up_k) at prediction step `k` (1-based) of a horizon `n`.
     pub fn bounds(&self, k: usize, n: usize) -> (f64, f64) {
         let s = self.mu * k as f64 / n.max(1) as f64;

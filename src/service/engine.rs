@@ -97,6 +97,8 @@ pub struct Engine {
     pub store: Arc<Store>,
     pub models: Models,
     plants: Mutex<HashMap<i64, Arc<Mutex<SimulatedPlant>>>>,
+    /// Set at shutdown: running solves stop as at their time budget.
+    pub cancel: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// A failure of the work (not of the input).
@@ -164,6 +166,7 @@ impl Engine {
             store,
             models,
             plants: Mutex::new(HashMap::new()),
+            cancel: Arc::default(),
         }
     }
 
@@ -271,6 +274,7 @@ impl Engine {
                 true_theta: Some(p.plant.water_content()),
             });
         }
+        let mut failure = None;
         while p.time + interval <= now {
             if p.time >= rate_until {
                 // the latest setpoint issued at or before this interval's start
@@ -290,10 +294,14 @@ impl Engine {
             let forcing = self
                 .weather_at(p.spec.scenario, p.day_zero, p.time)
                 .forcing(rate, SCENARIO_STEP);
-            let report = p
-                .plant
-                .step(forcing)
-                .map_err(|e| EngineError::Plant(field.id, e.to_string()))?;
+            let report = match p.plant.step(forcing) {
+                Ok(report) => report,
+                Err(e) => {
+                    // what was simulated before stays stored
+                    failure = Some(EngineError::Plant(field.id, e.to_string()));
+                    break;
+                }
+            };
             p.time += interval;
             batch.push(super::wire::Measurement {
                 time: p.time,
@@ -307,7 +315,10 @@ impl Engine {
             let state = serde_json::to_string(&p.state()).map_err(StoreError::from)?;
             self.store.put_simulation(field.id, &state)?;
         }
-        Ok(batch.len())
+        match failure {
+            Some(e) => Err(e),
+            None => Ok(batch.len()),
+        }
     }
 
     /// The true state of a simulated field.
@@ -414,11 +425,18 @@ impl Engine {
         let settings = spec.mpc_settings();
         let n = settings.horizon;
         let simulated = self.plant(field)?.is_some();
+        let mut degraded = Vec::new();
         if simulated {
-            self.advance_plant(field, now)?;
+            if let Err(e) = self.advance_plant(field, now) {
+                // the cycle still decides, on the latest stored measurement
+                eprintln!(
+                    "field {}: simulation before the cycle at {now}: {e}",
+                    field.id
+                );
+                degraded.push("simulation-failed".to_string());
+            }
             self.simulated_forecast(field, now, n)?;
         }
-        let mut degraded = Vec::new();
         let (weather, defaulted) = self.horizon_weather(field, now, n)?;
         if defaulted {
             degraded.push("default-forecast".to_string());
@@ -452,6 +470,7 @@ impl Engine {
             .map(|w| mm_to_rate(w.precip_mm, period))
             .collect();
         let mut mpc = ZoneMpc::new(settings);
+        mpc.set_cancel(Some(self.cancel.clone()));
         if let Some(prev) = recent.first()
             && seconds(now - prev.time) <= 1.5 * period
             && prev.model == spec.model

@@ -35,6 +35,9 @@ use wire::{Actuator, Field, Setpoint};
 const SHIPPED_TWO_LAYER: &str = include_str!("../../models/two-layer.json");
 const SHIPPED_SINGLE: &str = include_str!("../../models/single-lstm.json");
 
+/// How long shutdown waits for running cycles and deliveries.
+pub const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// The daemon could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
@@ -210,8 +213,21 @@ impl App {
         });
         let result = server.await;
         state.shutdown.cancel();
+        // a solve under way stops as at its time budget and stores its
+        // fallback; whatever still runs after the grace period is left
+        state
+            .engine
+            .cancel
+            .store(true, std::sync::atomic::Ordering::Relaxed);
         state.tracker.close();
-        state.tracker.wait().await;
+        if tokio::time::timeout(SHUTDOWN_GRACE, state.tracker.wait())
+            .await
+            .is_err()
+        {
+            eprintln!(
+                "shutdown: tasks still running after {SHUTDOWN_GRACE:?}; stopping without them"
+            );
+        }
         let _ = state
             .engine
             .store

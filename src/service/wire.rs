@@ -107,28 +107,9 @@ impl SoilSpec {
                     saturated_conductivity: *saturated_conductivity,
                     specific_storage: *specific_storage,
                 };
-                let ok = [
-                    soil.residual_water_content,
-                    soil.saturated_water_content,
-                    soil.alpha,
-                    soil.n,
-                    soil.saturated_conductivity,
-                    soil.specific_storage,
-                ]
-                .iter()
-                .all(|v| v.is_finite())
-                    && 0.0 <= soil.residual_water_content
-                    && soil.residual_water_content < soil.saturated_water_content
-                    && soil.saturated_water_content <= 1.0
-                    && soil.alpha > 0.0
-                    && soil.n > 1.0
-                    && soil.saturated_conductivity > 0.0
-                    && soil.specific_storage >= 0.0;
-                if ok {
-                    Ok(soil)
-                } else {
-                    Err("soil: parameters must satisfy 0 ≤ θr < θs ≤ 1, α > 0, n > 1, Ks > 0, Ss ≥ 0".into())
-                }
+                soil.validate()
+                    .map(|()| soil)
+                    .map_err(|e| format!("soil: {e}"))
             }
         }
     }

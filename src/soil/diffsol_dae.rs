@@ -22,7 +22,13 @@ use std::cell::RefCell;
 use super::column::{
     AMOUNTS, Column, DRAINAGE, Derivatives, Evaluation, Forcing, INFILTRATION, RUNOFF, UPTAKE,
 };
-use super::integrator::{ColumnState, IntegrationError, IntegratorStatistics, Tolerances};
+use super::integrator::{
+    ColumnState, FailureKind, IntegrationError, IntegratorStatistics, Tolerances,
+};
+
+/// BDF steps one call may take before it gives up (it stalls on a column
+/// wetting up to saturation; see the module docs).
+const MAX_STEPS: usize = 100_000;
 
 type Mat = NalgebraMat<f64>;
 type Vec64 = NalgebraVec<f64>;
@@ -287,15 +293,12 @@ impl DaeIntegrator {
         duration: f64,
         forcing: Forcing,
     ) -> Result<(), IntegrationError> {
-        let fail = |e: diffsol::DiffsolError| IntegrationError {
-            time,
-            message: e.to_string(),
-        };
+        let fail = |e: diffsol::DiffsolError| IntegrationError::invalid(time, e.to_string());
         if !(duration > 0.0 && duration.is_finite()) {
-            return Err(IntegrationError {
+            return Err(IntegrationError::invalid(
                 time,
-                message: format!("duration must be > 0 s, got {duration}"),
-            });
+                format!("duration must be > 0 s, got {duration}"),
+            ));
         }
         self.problem.eqn.rhs.forcing = forcing;
         let start_state = dae_state(self.column(), state);
@@ -317,7 +320,16 @@ impl DaeIntegrator {
             .map_err(fail)?;
         solver.set_stop_time(time + duration).map_err(fail)?;
         let mut last_h = None;
-        loop {
+        for taken in 0.. {
+            if taken == MAX_STEPS {
+                return Err(IntegrationError {
+                    time: solver.state().t,
+                    kind: FailureKind::WorkLimit(format!("{MAX_STEPS} BDF steps in one call")),
+                    step: None,
+                    smallest_step: Some(solver.state().h),
+                    cell: None,
+                });
+            }
             let reason = solver.step().map_err(fail)?;
             if let OdeSolverStopReason::TstopReached = reason {
                 break;
@@ -327,10 +339,10 @@ impl DaeIntegrator {
         }
         let y = solver.state().y.inner().as_slice();
         if y.iter().any(|v| !v.is_finite()) {
-            return Err(IntegrationError {
-                time: time + duration,
-                message: "non-finite state".into(),
-            });
+            return Err(IntegrationError::invalid(
+                time + duration,
+                "non-finite state",
+            ));
         }
         let o = self.column().cells() + AMOUNTS;
         state.heads.copy_from_slice(&y[o..]);

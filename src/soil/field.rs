@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use super::column::{AMOUNTS, Column, DRAINAGE, Forcing, INFILTRATION, RUNOFF, UPTAKE};
 use super::hydraulics::VanGenuchten;
 use super::integrator::{
-    ColumnState, IntegrationError, Integrator, IntegratorStatistics, Tolerances,
+    ColumnState, IntegrationError, Integrator, IntegratorStatistics, Tolerances, WorkLimits,
 };
 use super::uptake::Crop;
 
@@ -204,6 +204,11 @@ impl Field {
         &self.integrator
     }
 
+    /// Replaces the bounds on the integrator's work per sampling step.
+    pub fn set_work_limits(&mut self, limits: WorkLimits) {
+        self.integrator.set_limits(limits);
+    }
+
     pub fn integrator_statistics(&self) -> IntegratorStatistics {
         self.integrator.statistics()
     }
@@ -264,13 +269,14 @@ impl Field {
     /// Advances one sampling step under `forcing`, then applies process noise and
     /// reads the sensor.
     pub fn step(&mut self, forcing: Forcing) -> Result<StepReport, IntegrationError> {
-        forcing.validate().map_err(|message| IntegrationError {
-            time: self.time,
-            message,
-        })?;
+        let step = self.steps;
+        forcing
+            .validate()
+            .map_err(|message| IntegrationError::invalid(self.time, message).in_step(step))?;
         let dt = self.settings.sampling_time;
         self.integrator
-            .advance(&mut self.state, self.time, dt, forcing)?;
+            .advance(&mut self.state, self.time, dt, forcing)
+            .map_err(|e| e.in_step(step))?;
         self.time += dt;
         self.steps += 1;
         self.apply_process_noise();

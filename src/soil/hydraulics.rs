@@ -79,42 +79,46 @@ impl VanGenuchten {
         self.saturated_water_content - self.residual_water_content
     }
 
-    /// Checks that the parameters describe a physical soil.
+    /// Checks that the parameters describe a physical soil: every one finite,
+    /// 0 ≤ θr < θs ≤ 1, α > 0, n > 1, Ks > 0 and Ss > 0. The message names
+    /// the first parameter that is not (by its configuration name).
     pub fn validate(&self) -> Result<(), String> {
         let p = self;
-        let finite = [
-            p.residual_water_content,
-            p.saturated_water_content,
-            p.alpha,
-            p.n,
-            p.saturated_conductivity,
-            p.specific_storage,
-        ]
-        .iter()
-        .all(|v| v.is_finite());
-        if !finite {
-            return Err("soil parameters must be finite".into());
+        for (name, v) in [
+            ("residual_water_content", p.residual_water_content),
+            ("saturated_water_content", p.saturated_water_content),
+            ("alpha", p.alpha),
+            ("n", p.n),
+            ("saturated_conductivity", p.saturated_conductivity),
+            ("specific_storage", p.specific_storage),
+        ] {
+            if !v.is_finite() {
+                return Err(format!("{name} must be finite, got {v}"));
+            }
         }
-        if !(0.0 <= p.residual_water_content
-            && p.residual_water_content < p.saturated_water_content
+        if !(0.0..1.0).contains(&p.residual_water_content) {
+            return Err(format!(
+                "residual_water_content must be in [0, 1), got {}",
+                p.residual_water_content
+            ));
+        }
+        if !(p.residual_water_content < p.saturated_water_content
             && p.saturated_water_content <= 1.0)
         {
             return Err(format!(
-                "need 0 <= theta_r < theta_s <= 1, got theta_r = {}, theta_s = {}",
+                "saturated_water_content must be in (residual_water_content, 1] = ({}, 1], got {}",
                 p.residual_water_content, p.saturated_water_content
             ));
         }
-        if p.alpha <= 0.0 || p.n <= 1.0 || p.saturated_conductivity <= 0.0 {
-            return Err(format!(
-                "need alpha > 0, n > 1, Ks > 0, got alpha = {}, n = {}, Ks = {}",
-                p.alpha, p.n, p.saturated_conductivity
-            ));
-        }
-        if p.specific_storage <= 0.0 {
-            return Err(format!(
-                "specific storage must be > 0, got {}",
-                p.specific_storage
-            ));
+        for (name, v, bound) in [
+            ("alpha", p.alpha, 0.0),
+            ("n", p.n, 1.0),
+            ("saturated_conductivity", p.saturated_conductivity, 0.0),
+            ("specific_storage", p.specific_storage, 0.0),
+        ] {
+            if v <= bound {
+                return Err(format!("{name} must be > {bound}, got {v}"));
+            }
         }
         Ok(())
     }

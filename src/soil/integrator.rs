@@ -63,12 +63,123 @@ impl Tolerances {
     }
 }
 
-/// Integration failed: the step size fell below the smallest allowed.
+/// Why an integration stopped short.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FailureKind {
+    /// The input (duration, forcing, state) was not valid.
+    InvalidInput(String),
+    /// The step size fell below the smallest allowed.
+    StepSizeCollapse,
+    /// A sampling step took more step attempts or Newton iterations than
+    /// its [`WorkLimits`] allow.
+    WorkLimit(String),
+    /// The caller's interrupt (a deadline, a shutdown) asked it to stop.
+    Interrupted,
+}
+
+impl std::fmt::Display for FailureKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FailureKind::InvalidInput(m) => f.write_str(m),
+            FailureKind::StepSizeCollapse => write!(f, "step size fell below {MIN_STEP} s"),
+            FailureKind::WorkLimit(m) => write!(f, "work limit reached: {m}"),
+            FailureKind::Interrupted => f.write_str("interrupted by the caller"),
+        }
+    }
+}
+
+/// An integration that stopped short: what happened, and where.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("integration failed at t = {time} s: {message}")]
+#[error("{}", self.describe())]
 pub struct IntegrationError {
+    /// Time [s] the integration had reached.
     pub time: f64,
-    pub message: String,
+    pub kind: FailureKind,
+    /// The sampling step (0-based) it failed in, where the caller knows it.
+    pub step: Option<usize>,
+    /// The smallest step size [s] tried in the failing sampling step.
+    pub smallest_step: Option<f64>,
+    /// The cell whose Newton residual or error estimate was largest at the
+    /// last failed attempt.
+    pub cell: Option<usize>,
+}
+
+impl IntegrationError {
+    /// Input that cannot be integrated, at time `time`.
+    pub fn invalid(time: f64, message: impl Into<String>) -> Self {
+        IntegrationError {
+            time,
+            kind: FailureKind::InvalidInput(message.into()),
+            step: None,
+            smallest_step: None,
+            cell: None,
+        }
+    }
+
+    /// The same error, naming the sampling step it happened in.
+    pub fn in_step(mut self, step: usize) -> Self {
+        self.step = Some(step);
+        self
+    }
+
+    fn describe(&self) -> String {
+        let mut text = String::from("integration failed");
+        if let Some(k) = self.step {
+            text += &format!(" in sampling step {k}");
+        }
+        text += &format!(" at t = {} s: {}", self.time, self.kind);
+        if let Some(dt) = self.smallest_step {
+            text += &format!("; smallest step {dt:.3e} s");
+        }
+        if let Some(cell) = self.cell {
+            text += &format!(", cell {cell}");
+        }
+        text
+    }
+}
+
+/// Bounds on the work of one call of [`Integrator::advance`]: crossing one
+/// is an [`IntegrationError`], never a loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WorkLimits {
+    /// Step attempts (accepted, rejected and abandoned) per sampling step.
+    pub step_attempts: usize,
+    /// Newton iterations per sampling step.
+    pub newton_iterations: usize,
+}
+
+impl Default for WorkLimits {
+    /// 2,000 attempts and 40,000 Newton iterations per sampling step: about
+    /// 40× what the wettest runs of the test matrix need, and some tens of
+    /// milliseconds of work at most.
+    fn default() -> Self {
+        WorkLimits {
+            step_attempts: 2_000,
+            newton_iterations: 40_000,
+        }
+    }
+}
+
+/// A check the integrator makes before every step attempt; when it returns
+/// true the integration stops with [`FailureKind::Interrupted`]. The soil
+/// module keeps no clock: a deadline or a shutdown flag lives in the closure.
+#[derive(Clone)]
+pub struct Interrupt(std::sync::Arc<dyn Fn() -> bool + Send + Sync>);
+
+impl Interrupt {
+    pub fn new(check: impl Fn() -> bool + Send + Sync + 'static) -> Self {
+        Interrupt(std::sync::Arc::new(check))
+    }
+
+    pub fn requested(&self) -> bool {
+        (self.0)()
+    }
+}
+
+impl std::fmt::Debug for Interrupt {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Interrupt(..)")
+    }
 }
 
 /// Counters of the work the integrator did.
@@ -138,6 +249,8 @@ pub struct Integrator {
     next_step: f64,
     /// Forcing of the last call.
     last_forcing: Option<Forcing>,
+    limits: WorkLimits,
+    interrupt: Option<Interrupt>,
     work: Workspace,
 }
 
@@ -158,6 +271,9 @@ struct Workspace {
     update: Vec<f64>,
     base: Vec<f64>,
     scratch: Vec<f64>,
+    /// The cell with the largest Newton residual or error estimate at the
+    /// last failed attempt.
+    worst_cell: Option<usize>,
     /// Kept only while tangents are propagated: diag(C + Ss) at the start of
     /// the step, and per stage the tridiagonal ∂F/∂H, diag(C + Ss) and
     /// ∂F_0/∂(irrigation) (1/dz while the top face takes all the supply).
@@ -184,6 +300,7 @@ impl Workspace {
             update: z.clone(),
             base: z.clone(),
             scratch: z.clone(),
+            worst_cell: None,
             keep_jacobians: false,
             start_capacity: z.clone(),
             stage_lower: std::array::from_fn(|_| z.clone()),
@@ -210,6 +327,8 @@ impl Integrator {
             statistics: IntegratorStatistics::default(),
             next_step: FIRST_STEP,
             last_forcing: None,
+            limits: WorkLimits::default(),
+            interrupt: None,
             work: Workspace::new(column.cells()),
         })
     }
@@ -220,6 +339,20 @@ impl Integrator {
 
     pub fn statistics(&self) -> IntegratorStatistics {
         self.statistics
+    }
+
+    pub fn limits(&self) -> WorkLimits {
+        self.limits
+    }
+
+    /// Replaces the bounds on the work of a sampling step.
+    pub fn set_limits(&mut self, limits: WorkLimits) {
+        self.limits = limits;
+    }
+
+    /// Installs (or removes) the check made before every step attempt.
+    pub fn set_interrupt(&mut self, interrupt: Option<Interrupt>) {
+        self.interrupt = interrupt;
     }
 
     /// Advances `state` over `duration` seconds under constant `forcing`.
@@ -258,10 +391,7 @@ impl Integrator {
         tangents: &mut [Vec<f64>],
         irrigation: Option<usize>,
     ) -> Result<(), IntegrationError> {
-        let fail = |at: f64, message: String| IntegrationError {
-            time: time + at,
-            message,
-        };
+        let fail = |at: f64, message: String| IntegrationError::invalid(time + at, message);
         if !(duration.is_finite() && duration > 0.0) {
             return Err(fail(0.0, format!("duration must be > 0 s, got {duration}")));
         }
@@ -285,7 +415,35 @@ impl Integrator {
             _ => self.next_step.min(RESTART_STEP),
         };
         self.last_forcing = Some(forcing);
+        let (mut attempts, newton_at_start) = (0usize, self.statistics.newton_iterations);
+        let mut smallest = f64::INFINITY;
         while t < duration {
+            let now = t;
+            let stop =
+                move |kind: FailureKind, smallest: f64, cell: Option<usize>| IntegrationError {
+                    time: time + now,
+                    kind,
+                    step: None,
+                    smallest_step: smallest.is_finite().then_some(smallest),
+                    cell,
+                };
+            if self.interrupt.as_ref().is_some_and(Interrupt::requested) {
+                return Err(stop(FailureKind::Interrupted, smallest, None));
+            }
+            let newton = self.statistics.newton_iterations - newton_at_start;
+            if attempts >= self.limits.step_attempts || newton >= self.limits.newton_iterations {
+                let what = format!(
+                    "{attempts} step attempts and {newton} Newton iterations in one sampling step \
+                     (limits {} and {})",
+                    self.limits.step_attempts, self.limits.newton_iterations
+                );
+                return Err(stop(
+                    FailureKind::WorkLimit(what),
+                    smallest,
+                    self.work.worst_cell,
+                ));
+            }
+            attempts += 1;
             let remaining = duration - t;
             let mut this_dt = dt;
             if this_dt >= remaining * (1.0 - 1e-12) {
@@ -328,8 +486,13 @@ impl Integrator {
                     dt = this_dt * 0.25;
                 }
             }
+            smallest = smallest.min(this_dt);
             if dt < MIN_STEP {
-                return Err(fail(t, format!("step size fell below {MIN_STEP} s")));
+                return Err(stop(
+                    FailureKind::StepSizeCollapse,
+                    smallest.min(dt),
+                    self.work.worst_cell,
+                ));
             }
         }
         self.next_step = dt;
@@ -410,6 +573,7 @@ impl Integrator {
         let w = &self.work;
         let tol = self.tolerances;
         let mut sum = 0.0;
+        let (mut worst, mut largest) = (None, -1.0);
         for i in 0..n {
             let mut e = 0.0;
             for j in 0..STAGES {
@@ -418,9 +582,16 @@ impl Integrator {
             let water = w.eval.states[i].water_content + ss * w.trial[i];
             let scale = tol.absolute + tol.relative * water.abs().max(w.storage[i].abs());
             let r = dt * e / scale;
+            // a NaN error counts as the largest
+            if r.is_nan() || r.abs() > largest {
+                (worst, largest) = (Some(i), r.abs());
+            }
             sum += r * r;
         }
         let error = (sum / n as f64).sqrt();
+        if !(error.is_finite() && error <= 1.0) {
+            self.work.worst_cell = worst;
+        }
         if error.is_finite() && error <= 1.0 {
             Step::Accepted { error }
         } else {
@@ -514,6 +685,7 @@ impl Integrator {
         let mut iterations = 0;
         while norm > tolerance {
             if iterations == MAX_NEWTON_ITERATIONS || !norm.is_finite() {
+                w.worst_cell = largest_entry(&w.residual);
                 return false;
             }
             iterations += 1;
@@ -544,12 +716,25 @@ impl Integrator {
                 }
                 lambda *= 0.5;
                 if lambda < 1e-12 {
+                    w.worst_cell = largest_entry(&w.residual);
                     return false;
                 }
             }
         }
         true
     }
+}
+
+/// The index of the entry of largest magnitude (NaN counts as largest).
+fn largest_entry(values: &[f64]) -> Option<usize> {
+    let mut best: Option<(usize, f64)> = None;
+    for (i, v) in values.iter().enumerate() {
+        let m = if v.is_nan() { f64::INFINITY } else { v.abs() };
+        if best.is_none_or(|(_, b)| m > b) {
+            best = Some((i, m));
+        }
+    }
+    best.map(|(i, _)| i)
 }
 
 /// Solves the tridiagonal system with sub-diagonal `a(i)` (row i, column i−1),

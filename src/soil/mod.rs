@@ -12,5 +12,8 @@ pub mod uptake;
 pub use column::{Column, Derivatives, Evaluation, Forcing};
 pub use field::{Field, FieldSettings, StepReport, WaterBalance};
 pub use hydraulics::{HydraulicState, Texture, VanGenuchten};
-pub use integrator::{ColumnState, IntegrationError, Integrator, IntegratorStatistics, Tolerances};
+pub use integrator::{
+    ColumnState, FailureKind, IntegrationError, Integrator, IntegratorStatistics, Interrupt,
+    Tolerances, WorkLimits,
+};
 pub use uptake::{Crop, Feddes};

@@ -114,7 +114,7 @@ pub fn generate(
         ..*settings
     };
     let mut field =
-        Field::new(settings).map_err(|message| IntegrationError { time: 0.0, message })?;
+        Field::new(settings).map_err(|message| IntegrationError::invalid(0.0, message))?;
     let soil = settings.soil;
     let dt = settings.sampling_time;
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
