@@ -190,6 +190,9 @@ pub struct ZoneMpc {
     /// Set from outside (a shutdown): the running solve stops as at its
     /// time budget.
     cancel: Option<Arc<AtomicBool>>,
+    /// The stop rule of the solve under way (its deadline or the cancel
+    /// flag), the same check its model evaluations make.
+    stop: Option<Interrupt>,
 }
 
 /// The QP solver of the last subproblem: its sparsity pattern is the same
@@ -230,6 +233,7 @@ impl ZoneMpc {
             previous: None,
             qp: QpCache::default(),
             cancel: None,
+            stop: None,
         }
     }
 
@@ -239,13 +243,10 @@ impl ZoneMpc {
         self.cancel = cancel;
     }
 
-    /// Whether the solve that started at `start` must stop.
-    fn out_of_time(&self, start: Instant) -> bool {
-        start.elapsed() > self.settings.time_budget
-            || self
-                .cancel
-                .as_ref()
-                .is_some_and(|c| c.load(Ordering::Relaxed))
+    /// Whether the solve under way must stop: its time budget ran out or
+    /// the cancel flag is set.
+    fn out_of_time(&self) -> bool {
+        self.stop.as_ref().is_some_and(Interrupt::requested)
     }
 
     /// The previous plan shifted by one step (last entry repeated), scaled
@@ -296,10 +297,13 @@ impl ZoneMpc {
         // it is abandoned, and the solve keeps its best iterate
         let deadline = start + self.settings.time_budget;
         let cancel = self.cancel.clone();
-        model.set_interrupt(Some(Interrupt::new(move || {
+        let stop = Interrupt::new(move || {
             Instant::now() > deadline || cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed))
-        })));
+        });
+        model.set_interrupt(Some(stop.clone()));
+        self.stop = Some(stop);
         let solution = self.solve_within(model, start);
+        self.stop = None;
         model.set_interrupt(None);
         solution
     }
@@ -335,7 +339,7 @@ impl ZoneMpc {
         candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
         let warm_converged = warm_started && best.status == SolveStatus::Converged;
         for (j0, other) in candidates.into_iter().take(s.starts.saturating_sub(1)) {
-            if self.out_of_time(start) {
+            if self.out_of_time() {
                 break;
             }
             // a converged warm run is beaten only from a start that is
@@ -387,7 +391,7 @@ impl ZoneMpc {
             }
         };
         if let Err(e) = model.predict_with_jacobian(&raw(&ubar), &mut y, &mut jac) {
-            let reason = if self.out_of_time(start) {
+            let reason = if self.out_of_time() {
                 format!("time budget of {:?} ran out: {e}", s.time_budget)
             } else {
                 e.to_string()
@@ -401,7 +405,7 @@ impl ZoneMpc {
         let mut iterations = 0;
         let mut trial_y = vec![0.0; n];
         while iterations < s.max_iterations {
-            if self.out_of_time(start) {
+            if self.out_of_time() {
                 status = SolveStatus::TimeBudget;
                 break;
             }
@@ -440,7 +444,7 @@ impl ZoneMpc {
                     // with that prediction
                     y.copy_from_slice(&trial_y);
                     j = trial;
-                    status = if self.out_of_time(start) {
+                    status = if self.out_of_time() {
                         SolveStatus::TimeBudget
                     } else {
                         SolveStatus::Fallback("model failed at an accepted plan".into())
