@@ -96,6 +96,7 @@ enum Command {
     },
     /// Simulate fields beside a controller: measurements and forecasts to it
     /// over HTTP, setpoints back through its webhook actuator.
+    #[command(after_help = FIELD_SIM_DEFAULTS)]
     FieldSim {
         /// Base URL of the controller (e.g. http://127.0.0.1:8080).
         #[arg(long)]
@@ -105,6 +106,7 @@ enum Command {
         config: Option<PathBuf>,
     },
     /// Run the controller daemon: HTTP API, control loop, simulated fields.
+    #[command(after_help = SERVE_DEFAULTS)]
     Serve {
         /// TOML configuration (see config/default.toml); environment
         /// variables ROOTZONE_… override it.
@@ -112,6 +114,39 @@ enum Command {
         config: Option<PathBuf>,
     },
 }
+
+const SERVE_DEFAULTS: &str = "\
+Defaults (each setting: config file key / environment variable):
+  listen                    127.0.0.1:8080        ROOTZONE_LISTEN (host:port, names allowed)
+  data_dir                  data                  ROOTZONE_DATA_DIR (made 0700; database 0600)
+  api_token                 generated into <data_dir>/api-token   ROOTZONE_API_TOKEN
+  models_dir                the shipped models    ROOTZONE_MODELS_DIR
+  clock.speedup             1 (real time; ≤ 100000, 1e3 is fine)  ROOTZONE_CLOCK__SPEEDUP
+  clock.epoch               unset (RFC 3339, years 2000-2199)    ROOTZONE_CLOCK__EPOCH
+  limits.max_batch          10000 measurements    ROOTZONE_LIMITS__MAX_BATCH
+  limits.max_future_skew_s  300                   ROOTZONE_LIMITS__MAX_FUTURE_SKEW_S
+  limits.worker_threads     2                     ROOTZONE_LIMITS__WORKER_THREADS
+  limits.max_catch_up_s     172800 (2 days)       ROOTZONE_LIMITS__MAX_CATCH_UP_S
+  log.format                text (or json)        ROOTZONE_LOG__FORMAT
+  log.level                 info (RUST_LOG wins)  ROOTZONE_LOG__LEVEL
+  webhooks.allow_link_local false                 ROOTZONE_WEBHOOKS__ALLOW_LINK_LOCAL
+  fields                    one simulated sandy-loam field 'demo' (first start only)
+See config/default.toml and README.md.";
+
+const FIELD_SIM_DEFAULTS: &str = "\
+Defaults (each setting: config file key / environment variable):
+  controller                http://127.0.0.1:8080 ROOTZONE_CONTROLLER (or --controller)
+  api_token                 unset: the controller's token   ROOTZONE_API_TOKEN
+  sim_listen                127.0.0.1:9090        ROOTZONE_SIM_LISTEN
+  public_url                http://<sim_listen>   ROOTZONE_PUBLIC_URL
+  sim_data_dir              field-data            ROOTZONE_SIM_DATA_DIR
+  sim_token                 generated into <sim_data_dir>/sim-token   ROOTZONE_SIM_TOKEN
+  clock.speedup             1                     ROOTZONE_CLOCK__SPEEDUP (same as the controller)
+  clock.epoch               unset                 ROOTZONE_CLOCK__EPOCH (same as the controller)
+  max_buffer                100000 measurements per field   ROOTZONE_MAX_BUFFER
+  max_catch_up_s            172800 (2 days)       ROOTZONE_MAX_CATCH_UP_S
+  fields                    one simulated sandy-loam field 'sim-field'
+See config/field-sim.toml and README.md.";
 
 /// Exit code for bad input (files, values, arguments).
 const BAD_INPUT: u8 = 2;
@@ -282,6 +317,7 @@ fn train(
 fn serve(config: Option<PathBuf>) -> anyhow::Result<()> {
     use rootzone::service::{App, Settings, shutdown_signal};
     let settings = Settings::load(config.as_deref())?;
+    rootzone::service::init_logging(&settings.log);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .max_blocking_threads(settings.limits.worker_threads.max(1) + 4)
@@ -327,6 +363,7 @@ fn serve(config: Option<PathBuf>) -> anyhow::Result<()> {
 fn field_sim(controller: Option<String>, config: Option<PathBuf>) -> anyhow::Result<()> {
     use rootzone::fieldsim::{FieldSimSettings, run};
     let settings = FieldSimSettings::load(config.as_deref(), controller.as_deref())?;
+    rootzone::service::init_logging(&rootzone::service::settings::LogSettings::default());
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;

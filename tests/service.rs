@@ -1,129 +1,15 @@
 //! The daemon end to end: the real `rootzone serve` on an ephemeral port with
 //! a temporary data directory, driven with curl.
 
-use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 
-const TOKEN: &str = "test-token-0123456789";
-
-struct Daemon {
-    child: Child,
-    base: String,
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// Starts the daemon with `config` (TOML) in `dir`; returns once it listens.
-fn start(dir: &Path, config: &str) -> Daemon {
-    let file = dir.join("rootzone.toml");
-    std::fs::write(&file, config).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rootzone"))
-        .args(["serve", "--config"])
-        .arg(&file)
-        .env("ROOTZONE_LISTEN", "127.0.0.1:0")
-        .env("ROOTZONE_DATA_DIR", dir.join("data"))
-        .env("ROOTZONE_API_TOKEN", TOKEN)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    let mut reader = BufReader::new(child.stdout.take().unwrap());
-    reader.read_line(&mut line).unwrap();
-    // keep draining what the daemon prints later
-    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
-    let base = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no address in '{line}'"))
-        .to_string();
-    Daemon { child, base }
-}
-
-/// A curl request: method, path, optional JSON body, with or without the
-/// token. Returns (status, content type, body).
-fn curl(
-    d: &Daemon,
-    method: &str,
-    path: &str,
-    body: Option<&str>,
-    token: Option<&str>,
-) -> (u16, String, String) {
-    curl_at(&d.base, method, path, body, token)
-}
-
-/// [`curl`] against the daemon at `base` (from another thread).
-fn curl_at(
-    base: &str,
-    method: &str,
-    path: &str,
-    body: Option<&str>,
-    token: Option<&str>,
-) -> (u16, String, String) {
-    let mut cmd = Command::new("curl");
-    cmd.args(["-s", "-X", method, "-w", "\n%{http_code}\n%{content_type}"]);
-    if let Some(t) = token {
-        cmd.args(["-H", &format!("Authorization: Bearer {t}")]);
-    }
-    if body.is_some() {
-        cmd.args([
-            "-H",
-            "Content-Type: application/json",
-            "--data-binary",
-            "@-",
-        ]);
-        cmd.stdin(Stdio::piped());
-    }
-    cmd.arg(format!("{base}{path}"));
-    cmd.stdout(Stdio::piped());
-    let mut child = cmd.spawn().expect("curl runs");
-    if let Some(b) = body {
-        use std::io::Write;
-        child.stdin.take().unwrap().write_all(b.as_bytes()).unwrap();
-    }
-    let out = child.wait_with_output().unwrap();
-    let text = String::from_utf8_lossy(&out.stdout).to_string();
-    let mut parts = text.rsplitn(3, '\n');
-    let ctype = parts.next().unwrap_or("").to_string();
-    let status = parts.next().unwrap_or("0").parse().unwrap_or(0);
-    let body = parts.next().unwrap_or("").to_string();
-    (status, ctype, body)
-}
-
-fn json_of(body: &str) -> Value {
-    serde_json::from_str(body).unwrap_or_else(|e| panic!("not JSON ({e}): {body}"))
-}
-
-/// Asserts a problem+json error with `status` whose detail contains `needle`.
-fn problem(r: (u16, String, String), status: u16, needle: &str) {
-    assert_eq!(r.0, status, "{}", r.2);
-    assert!(r.1.starts_with("application/problem+json"), "{}", r.1);
-    let v = json_of(&r.2);
-    assert_eq!(v["status"], status);
-    let detail = v["detail"].as_str().unwrap();
-    assert!(detail.contains(needle), "'{detail}' should name '{needle}'");
-}
+mod common;
+use common::*;
 
 const EXTERNAL_FIELD: &str = r#"{"name": "north", "model": "two-layer"}"#;
-
-fn config(extra: &str) -> String {
-    format!(
-        "fields = []\n{extra}\n[limits]\nmax_batch = 50\nmax_future_skew_s = 300.0\nworker_threads = 2\n"
-    )
-}
-
-fn now_minus(minutes: i64) -> String {
-    (chrono::Utc::now() - chrono::TimeDelta::minutes(minutes)).to_rfc3339()
-}
 
 #[test]
 fn api_stores_controls_and_rejects_bad_input() {
@@ -153,7 +39,12 @@ fn api_stores_controls_and_rejects_bad_input() {
     assert_eq!(r.0, 201, "{}", r.2);
     let field = json_of(&r.2);
     let id = field["id"].as_i64().unwrap();
-    assert_eq!(field["zone"]["low"], 0.18);
+    // the zone in force, in both forms (sandy loam: [0.18, 0.23], heads
+    // about −0.43 … −0.27 m)
+    assert_eq!(field["effective_zone"]["low"], 0.18);
+    assert_eq!(field["effective_zone"]["up"], 0.23);
+    let head = field["effective_zone"]["low_head"].as_f64().unwrap();
+    assert!((head + 0.43).abs() < 0.01, "{head}");
     let fp = format!("/v1/fields/{id}");
 
     // measurements: one, then a batch of twelve over the last two days
@@ -230,10 +121,17 @@ fn api_stores_controls_and_rejects_bad_input() {
         json_of(&curl(&d, "GET", &format!("{fp}/forecast"), None, None).2)["step_s"],
         3600.0
     );
-    problem(
-        curl(&d, "GET", &format!("{fp}/setpoint"), None, None),
-        404,
-        "no setpoint",
+    // the first cycle ran when the field was created, before any
+    // measurement: a setpoint exists at once, flagged
+    let first = curl(&d, "GET", &format!("{fp}/setpoint"), None, None);
+    assert_eq!(first.0, 200, "{}", first.2);
+    let first = json_of(&first.2);
+    assert!(
+        first["degraded"]
+            .as_array()
+            .unwrap()
+            .contains(&json!("no-measurement")),
+        "{first}"
     );
     let r = curl(&d, "POST", &format!("{fp}/control"), None, Some(TOKEN));
     assert_eq!(r.0, 200, "{}", r.2);
@@ -249,7 +147,11 @@ fn api_stores_controls_and_rejects_bad_input() {
         sp
     );
     let history = json_of(&curl(&d, "GET", &format!("{fp}/setpoints"), None, None).2);
-    assert_eq!(history.as_array().unwrap().len(), 1);
+    assert_eq!(
+        history.as_array().unwrap().len(),
+        2,
+        "the first cycle and this one"
+    );
 
     // bad input: each a problem+json naming the value, nothing stored
     let post = |body: &str| {
@@ -437,7 +339,8 @@ fn api_stores_controls_and_rejects_bad_input() {
     assert!(sp["predicted_next"].as_f64().is_some(), "{sp}");
     assert!(sp["measured_at"].is_string(), "{sp}");
     let history = json_of(&curl(&d, "GET", &format!("{op}/setpoints"), None, None).2);
-    assert_eq!(history.as_array().unwrap().len(), 2, "{history}");
+    // the first cycle at creation, then the two asked for
+    assert_eq!(history.as_array().unwrap().len(), 3, "{history}");
 
     // patch and delete
     let r = curl(
@@ -455,7 +358,8 @@ fn api_stores_controls_and_rejects_bad_input() {
         "{metrics}"
     );
     assert!(
-        metrics.contains("rootzone_degraded_cycles_total{flag=\"no-measurement\"} 1"),
+        // the two first cycles at creation and one asked for before a measurement
+        metrics.contains("rootzone_degraded_cycles_total{flag=\"no-measurement\"} 3"),
         "{metrics}"
     );
     let cycles: f64 = metrics
@@ -463,7 +367,10 @@ fn api_stores_controls_and_rejects_bad_input() {
         .filter(|l| l.starts_with("rootzone_control_cycles_total{"))
         .filter_map(|l| l.split_whitespace().last()?.parse::<f64>().ok())
         .sum();
-    assert_eq!(cycles, 3.0, "{metrics}");
+    assert_eq!(
+        cycles, 5.0,
+        "two first cycles and three asked for: {metrics}"
+    );
     assert_eq!(curl(&d, "DELETE", &fp, None, Some(TOKEN)).0, 204);
     problem(curl(&d, "GET", &fp, None, None), 404, &id.to_string());
 }
@@ -495,10 +402,9 @@ fn acknowledged_data_survives_kill_9_and_a_restart() {
     let mut d = start(dir.path(), &config(""));
     let stored = json_of(&curl(&d, "GET", &format!("{fp}/measurements"), None, None).2);
     assert_eq!(stored.as_array().unwrap().len(), 20);
-    assert_eq!(
-        json_of(&curl(&d, "GET", &format!("{fp}/setpoint"), None, None).2),
-        sp
-    );
+    // the acknowledged setpoint is kept (the restart's first cycle adds one)
+    let all = json_of(&curl(&d, "GET", &format!("{fp}/setpoints"), None, None).2);
+    assert!(all.as_array().unwrap().contains(&sp), "{all}");
     // SIGTERM: a clean stop
     let pid = d.child.id().to_string();
     assert!(

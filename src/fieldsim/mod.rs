@@ -12,10 +12,11 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use axum::Router;
 use axum::extract::{Path as UrlPath, State};
 use axum::http::StatusCode;
+use axum::response::IntoResponse;
 use axum::routing::post;
-use axum::{Json, Router};
 use chrono::{DateTime, TimeDelta, Utc};
 use figment::Figment;
 use figment::providers::{Env, Format, Serialized, Toml};
@@ -26,6 +27,9 @@ use serde::{Deserialize, Serialize};
 use crate::service::clock::{Clock, next_boundary};
 use crate::service::engine::{midnight, scenario_forecast, scenario_weather};
 use crate::service::settings::ClockSettings;
+use crate::service::webhook::{
+    DELIVERY_HEADER, ReplayGuard, SIGNATURE_HEADER, TIMESTAMP_HEADER, verify,
+};
 use crate::service::wire::{Actuator, FieldSpec, Measurement, Setpoint, SimulationSpec};
 use crate::soil::{ColumnState, Field as Plant, FieldSettings};
 
@@ -39,6 +43,8 @@ pub const ENV_KEYS: &[&str] = &[
     "clock.speedup",
     "clock.epoch",
     "max_buffer",
+    "sim_token",
+    "max_catch_up_s",
 ];
 
 /// Settings of the field simulator: defaults, a TOML file, then
@@ -62,8 +68,24 @@ pub struct FieldSimSettings {
     pub clock: ClockSettings,
     /// Largest number of buffered measurements per field (the oldest go).
     pub max_buffer: usize,
+    /// The simulator's own token (`ROOTZONE_SIM_TOKEN`): an operator's
+    /// `Authorization: Bearer` for its setpoint endpoint. Unset: generated
+    /// into `sim_data_dir/sim-token` (0600). The controller authenticates
+    /// instead by the HMAC signature of its webhook.
+    #[serde(default)]
+    pub sim_token: Option<String>,
+    /// Longest span [s of clock time] a plant replays after a stop.
+    #[serde(
+        default = "default_catch_up",
+        deserialize_with = "crate::service::settings::lenient_f64"
+    )]
+    pub max_catch_up_s: f64,
     /// The simulated fields (each with a `simulation` section).
     pub fields: Vec<FieldSpec>,
+}
+
+fn default_catch_up() -> f64 {
+    2.0 * 86_400.0
 }
 
 impl Default for FieldSimSettings {
@@ -79,6 +101,8 @@ impl Default for FieldSimSettings {
                 epoch: None,
             },
             max_buffer: 100_000,
+            sim_token: None,
+            max_catch_up_s: default_catch_up(),
             fields: vec![FieldSpec {
                 name: "sim-field".into(),
                 actuator: Actuator::None,
@@ -120,12 +144,46 @@ impl FieldSimSettings {
         if s.fields.is_empty() {
             return Err(FieldSimError("no fields to simulate".into()));
         }
-        for f in &s.fields {
-            if f.simulation.is_none() {
-                return Err(FieldSimError(format!(
-                    "field '{}' needs a 'simulation' section",
+        let bad = |m: String| Err(FieldSimError(m));
+        crate::service::settings::listen_addresses("sim_listen", &s.sim_listen)
+            .map_err(FieldSimError)?;
+        s.clock.validate().map_err(FieldSimError)?;
+        if !(1..=10_000_000).contains(&s.max_buffer) {
+            return bad(format!(
+                "max_buffer = {} must lie in [1, 10000000]",
+                s.max_buffer
+            ));
+        }
+        crate::service::wire::check_range(
+            "max_catch_up_s",
+            s.max_catch_up_s,
+            (0.0, 30.0 * 86_400.0),
+        )
+        .map_err(FieldSimError)?;
+        if let Some(t) = &s.sim_token
+            && !(8..=200).contains(&t.trim().len())
+        {
+            return bad("sim_token must have 8 to 200 characters".into());
+        }
+        let mut names = std::collections::HashSet::new();
+        for (i, f) in s.fields.iter().enumerate() {
+            let Some(sim) = f.simulation else {
+                return bad(format!(
+                    "fields[{i}] '{}' needs a 'simulation' section",
                     f.name
-                )));
+                ));
+            };
+            let plain = FieldSpec {
+                actuator: Actuator::None,
+                simulation: None,
+                ..f.clone()
+            };
+            plain
+                .validate()
+                .and_then(|()| sim.validate(f.control_period_s))
+                .map_err(|e| FieldSimError(format!("fields[{i}]: {e}")))?;
+            if !names.insert(f.name.clone()) {
+                return bad(format!("fields[{i}]: the name '{}' is used twice", f.name));
             }
         }
         Ok(s)
@@ -170,6 +228,11 @@ struct Saved {
 struct Shared {
     fields: Mutex<Vec<SimField>>,
     settings: FieldSimSettings,
+    /// The operator's token for the setpoint endpoint.
+    token: String,
+    /// The secret the controller signs this simulator's setpoints with.
+    secret: String,
+    replays: Mutex<ReplayGuard>,
 }
 
 fn saved_path(dir: &Path, name: &str) -> PathBuf {
@@ -198,9 +261,23 @@ impl SimField {
     }
 
     /// Advances the plant to `now`, buffering a measurement per interval.
-    fn advance(&mut self, now: DateTime<Utc>, max_buffer: usize) -> Result<bool, String> {
+    fn advance(
+        &mut self,
+        now: DateTime<Utc>,
+        max_buffer: usize,
+        max_catch_up_s: f64,
+    ) -> Result<bool, String> {
         let interval = TimeDelta::milliseconds((self.sim.measurement_interval_s * 1000.0) as i64);
         let mut stepped = false;
+        let step = self.sim.measurement_interval_s;
+        let behind = (now - self.time).num_milliseconds() as f64 / 1e3 / step;
+        let most = (max_catch_up_s / step).floor();
+        if behind > most + 1.0 {
+            let from = self.time;
+            self.time += TimeDelta::milliseconds(((behind - most).floor() * step * 1e3) as i64);
+            tracing::warn!(field = %self.name, from = %from, to = %self.time,
+                "plant far behind the clock: skipped to replay at most {max_catch_up_s} s (max_catch_up_s)");
+        }
         if !self.started && self.time <= now {
             // the sensor reads the initial state at the start
             self.started = true;
@@ -242,7 +319,7 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), FieldSimError> {
     let clock = match settings.clock.epoch {
-        Some(epoch) => Clock::anchored(epoch, settings.clock.speedup),
+        Some(epoch) => Clock::anchored(epoch, settings.clock.speedup).map_err(FieldSimError)?,
         None => Clock::new(Utc::now(), settings.clock.speedup),
     };
     let listener = tokio::net::TcpListener::bind(&settings.sim_listen)
@@ -261,6 +338,11 @@ pub async fn run(
             settings.sim_data_dir.display()
         ))
     })?;
+    let token = match &settings.sim_token {
+        Some(t) => t.trim().to_string(),
+        None => private_secret(&settings.sim_data_dir, "sim-token")?,
+    };
+    let secret = private_secret(&settings.sim_data_dir, "webhook-secret")?;
     let mut fields = Vec::new();
     for spec in &settings.fields {
         let sim = spec.simulation.unwrap_or_default();
@@ -306,6 +388,7 @@ pub async fn run(
             spec: FieldSpec {
                 actuator: Actuator::Webhook {
                     url: format!("{public}/fields/{}/setpoint", encode(&spec.name)),
+                    secret: Some(secret.clone()),
                 },
                 simulation: None,
                 ..spec.clone()
@@ -324,7 +407,11 @@ pub async fn run(
     let shared = Arc::new(Shared {
         fields: Mutex::new(fields),
         settings: settings.clone(),
+        token,
+        secret,
+        replays: Mutex::new(ReplayGuard::default()),
     });
+    crate::service::install_tls();
     let http = reqwest::Client::builder()
         .timeout(Duration::from_secs(10))
         .build()
@@ -343,9 +430,15 @@ pub async fn run(
     {
         use std::io::Write;
         let mut out = std::io::stdout();
+        let token_source = if settings.sim_token.is_some() {
+            "from the configuration".to_string()
+        } else {
+            format!("in {}", settings.sim_data_dir.join("sim-token").display())
+        };
         let _ = writeln!(
             out,
-            "rootzone field-sim: setpoints at {public}/fields/<name>/setpoint, controller {}",
+            "rootzone field-sim: setpoints at {public}/fields/<name>/setpoint (signed by the \
+             controller, or with the simulator's token {token_source}), controller {}",
             settings.controller
         );
         let _ = out.flush();
@@ -376,21 +469,114 @@ fn encode(name: &str) -> String {
         .collect()
 }
 
+/// A refusal of the setpoint endpoint, as problem+json.
+fn refuse(status: StatusCode, detail: impl Into<String>) -> axum::response::Response {
+    crate::service::api::ApiError::new(status, detail).into_response()
+}
+
+/// A setpoint from the controller's webhook (HMAC-signed, not replayed) or
+/// from an operator with the simulator's token; its rate must lie in
+/// [0, irrigation_max] of the field.
 async fn receive_setpoint(
     State(shared): State<Arc<Shared>>,
     UrlPath(name): UrlPath<String>,
-    Json(setpoint): Json<Setpoint>,
-) -> StatusCode {
+    headers: axum::http::HeaderMap,
+    body: axum::body::Bytes,
+) -> axum::response::Response {
+    let header = |h: &str| headers.get(h).and_then(|v| v.to_str().ok());
+    let now = Utc::now().timestamp();
+    match (header(SIGNATURE_HEADER), header(TIMESTAMP_HEADER)) {
+        (Some(signature), Some(timestamp)) => {
+            if let Err(e) = verify(&shared.secret, timestamp, signature, &body, now) {
+                tracing::warn!(field = %name, error = %e, "setpoint refused: bad signature");
+                return refuse(StatusCode::UNAUTHORIZED, format!("signature refused: {e}"));
+            }
+            let delivery = header(DELIVERY_HEADER).unwrap_or("");
+            if delivery.is_empty() {
+                return refuse(
+                    StatusCode::BAD_REQUEST,
+                    format!("{DELIVERY_HEADER} is missing"),
+                );
+            }
+            let fresh = shared
+                .replays
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .first_time(delivery, now);
+            if !fresh {
+                // a retry of a delivery already applied: acknowledged again
+                return StatusCode::NO_CONTENT.into_response();
+            }
+        }
+        _ => {
+            let given = header("authorization")
+                .and_then(|v| v.split_once(' '))
+                .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+                .map(|(_, t)| t.trim());
+            match given {
+                None => {
+                    return refuse(
+                        StatusCode::UNAUTHORIZED,
+                        "a setpoint needs the controller's signature or \
+                         'Authorization: Bearer <simulator token>'",
+                    );
+                }
+                Some(t) if !same(t, &shared.token) => {
+                    return refuse(StatusCode::FORBIDDEN, "the bearer token is not valid");
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    let setpoint: Setpoint = match serde_json::from_slice(&body) {
+        Ok(s) => s,
+        Err(e) => {
+            return refuse(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!("not a setpoint: {e}"),
+            );
+        }
+    };
     let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
     let Some(f) = fields.iter_mut().find(|f| f.name == name) else {
-        return StatusCode::NOT_FOUND;
+        return refuse(StatusCode::NOT_FOUND, format!("no field '{name}'"));
     };
-    if !(setpoint.rate.is_finite() && setpoint.rate >= 0.0) {
-        return StatusCode::UNPROCESSABLE_ENTITY;
+    let most = f.spec.irrigation_max;
+    if !(setpoint.rate.is_finite() && (0.0..=most).contains(&setpoint.rate)) {
+        return refuse(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            format!("rate = {} must lie in [0, {most}] m/s", setpoint.rate),
+        );
+    }
+    if setpoint.valid_until <= setpoint.valid_from {
+        return refuse(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "valid_until must lie after valid_from",
+        );
     }
     f.setpoint = Some((setpoint.rate, setpoint.valid_from, setpoint.valid_until));
     let _ = f.save(&shared.settings.sim_data_dir);
-    StatusCode::NO_CONTENT
+    StatusCode::NO_CONTENT.into_response()
+}
+
+/// Equal strings, compared without an early exit.
+fn same(a: &str, b: &str) -> bool {
+    let (a, b) = (a.as_bytes(), b.as_bytes());
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0
+}
+
+/// A secret kept in `dir/name` (0600), made at first use.
+fn private_secret(dir: &Path, name: &str) -> Result<String, FieldSimError> {
+    let path = dir.join(name);
+    if let Ok(text) = std::fs::read_to_string(&path)
+        && text.trim().len() >= 16
+    {
+        return Ok(text.trim().to_string());
+    }
+    let secret = crate::service::random_hex(24).map_err(FieldSimError)?;
+    crate::service::write_private(&path, &secret)
+        .map_err(|e| FieldSimError(format!("cannot write {}: {e}", path.display())))?;
+    Ok(secret)
 }
 
 /// Checks the controller's clock against ours: same speedup, and the same
@@ -443,9 +629,18 @@ async fn work_loop(
     let token = s.api_token.clone().unwrap_or_default();
     let mut backoff = Duration::from_millis(100);
     // wait for the controller, then insist on one clock
+    let mut said = std::time::Instant::now();
     loop {
         if check_clock(&http, s, &clock).await?.is_some() {
             break;
+        }
+        if said.elapsed() >= Duration::from_secs(5) || backoff == Duration::from_millis(100) {
+            tracing::warn!(
+                "controller {} not reachable yet: retrying in {:.1} s",
+                s.controller,
+                backoff.as_secs_f64()
+            );
+            said = std::time::Instant::now();
         }
         tokio::time::sleep(backoff).await;
         backoff = (backoff * 2).min(Duration::from_secs(5));
@@ -467,7 +662,7 @@ async fn work_loop(
         {
             let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
             for f in fields.iter_mut() {
-                match f.advance(now, s.max_buffer) {
+                match f.advance(now, s.max_buffer, s.max_catch_up_s) {
                     Ok(true) => {
                         let _ = f.save(&s.sim_data_dir);
                     }
@@ -482,7 +677,18 @@ async fn work_loop(
                 Err(e) => {
                     backoff =
                         (backoff * 2).clamp(Duration::from_millis(200), Duration::from_secs(10));
-                    eprintln!("field-sim: controller unreachable ({e}); retrying in {backoff:?}");
+                    let wait = backoff.as_secs_f64();
+                    match e {
+                        SyncError::Refused(m) => tracing::error!(
+                            "the controller refused this simulator: {m}; \
+                             retrying in {wait:.1} s"
+                        ),
+                        SyncError::Down(m) => tracing::warn!(
+                            "controller {} down ({m}): retrying in {wait:.1} s; \
+                             measurements stay buffered",
+                            s.controller
+                        ),
+                    }
                     waited_until = std::time::Instant::now() + backoff;
                 }
             }
@@ -494,13 +700,42 @@ async fn work_loop(
     }
 }
 
+/// Why a round with the controller failed.
+enum SyncError {
+    /// It answered, and refused (a token, a field spec, a measurement).
+    Refused(String),
+    /// It did not answer.
+    Down(String),
+}
+
+fn down(e: reqwest::Error) -> SyncError {
+    SyncError::Down(e.to_string())
+}
+
+/// The controller's refusal of `what`, said plainly.
+fn refused(what: &str, status: StatusCode, body: String) -> SyncError {
+    let detail = serde_json::from_str::<serde_json::Value>(&body)
+        .ok()
+        .and_then(|v| v["detail"].as_str().map(String::from))
+        .unwrap_or(body);
+    match status.as_u16() {
+        401 | 403 => SyncError::Refused(format!(
+            "{what}: HTTP {status}, the API token was rejected ({detail}); set \
+             ROOTZONE_API_TOKEN (or api_token) to the controller's token, which it keeps in \
+             its data folder's api-token file"
+        )),
+        500..=599 => SyncError::Down(format!("{what}: HTTP {status} {detail}")),
+        _ => SyncError::Refused(format!("{what}: HTTP {status} {detail}")),
+    }
+}
+
 /// Registers unknown fields, sends buffered measurements and due forecasts.
 async fn sync_with_controller(
     shared: &Arc<Shared>,
     http: &reqwest::Client,
     token: &str,
     now: DateTime<Utc>,
-) -> Result<(), String> {
+) -> Result<(), SyncError> {
     let base = &shared.settings.controller;
     // registration by name
     let unregistered: Vec<(usize, FieldSpec)> = {
@@ -517,10 +752,10 @@ async fn sync_with_controller(
             .get(format!("{base}/v1/fields"))
             .send()
             .await
-            .map_err(|e| e.to_string())?
+            .map_err(down)?
             .json()
             .await
-            .map_err(|e| e.to_string())?;
+            .map_err(down)?;
         for (i, spec) in unregistered {
             let id = match known.iter().find(|f| f["name"] == spec.name.as_str()) {
                 Some(f) => f["id"].as_i64(),
@@ -531,19 +766,17 @@ async fn sync_with_controller(
                         .json(&spec)
                         .send()
                         .await
-                        .map_err(|e| e.to_string())?;
+                        .map_err(down)?;
                     if !r.status().is_success() {
-                        return Err(format!(
-                            "registering '{}': HTTP {} {}",
-                            spec.name,
-                            r.status(),
-                            r.text().await.unwrap_or_default()
+                        let status = r.status();
+                        let text = r.text().await.unwrap_or_default();
+                        return Err(refused(
+                            &format!("registering '{}'", spec.name),
+                            status,
+                            text,
                         ));
                     }
-                    r.json::<serde_json::Value>()
-                        .await
-                        .map_err(|e| e.to_string())?["id"]
-                        .as_i64()
+                    r.json::<serde_json::Value>().await.map_err(down)?["id"].as_i64()
                 }
             };
             shared.fields.lock().unwrap_or_else(|p| p.into_inner())[i].id = id;
@@ -594,7 +827,7 @@ async fn sync_with_controller(
                 .json(&batch)
                 .send()
                 .await
-                .map_err(|e| e.to_string())?;
+                .map_err(down)?;
             if r.status().is_success() {
                 let mut fields = shared.fields.lock().unwrap_or_else(|p| p.into_inner());
                 let f = &mut fields[i];
@@ -608,7 +841,9 @@ async fn sync_with_controller(
                 // the controller lost the field: register again
                 shared.fields.lock().unwrap_or_else(|p| p.into_inner())[i].id = None;
             } else {
-                return Err(format!("measurements: HTTP {}", r.status()));
+                let status = r.status();
+                let text = r.text().await.unwrap_or_default();
+                return Err(refused("sending measurements", status, text));
             }
         }
         if let Some(forecast) = forecast {
@@ -618,10 +853,14 @@ async fn sync_with_controller(
                 .json(&forecast)
                 .send()
                 .await
-                .map_err(|e| e.to_string())?;
+                .map_err(down)?;
             if r.status().is_success() {
                 shared.fields.lock().unwrap_or_else(|p| p.into_inner())[i].last_forecast =
                     Some(now);
+            } else {
+                let status = r.status();
+                let text = r.text().await.unwrap_or_default();
+                return Err(refused("sending the forecast", status, text));
             }
         }
     }

@@ -15,7 +15,7 @@ use chrono::{DateTime, TimeDelta, Utc};
 use serde::Deserialize;
 use serde::de::DeserializeOwned;
 
-use super::wire::{Field, FieldSpec, Forecast, Measurement};
+use super::wire::{Actuator, Field, FieldSpec, Forecast, Measurement};
 use super::{AppState, run_cycle, start_field, stop_field};
 
 /// Largest request body.
@@ -40,19 +40,42 @@ impl ApiError {
         ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, detail)
     }
 
-    fn internal(e: impl std::fmt::Display) -> ApiError {
-        ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+    /// A failure of the daemon, not of the request: logged with its detail
+    /// (in the request's span), answered without it.
+    pub(crate) fn internal(e: impl std::fmt::Display) -> ApiError {
+        tracing::error!(error = %e, "internal error");
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "internal error; the daemon's log has it under this request_id",
+        )
     }
+
+    fn conflict(detail: impl Into<String>) -> ApiError {
+        ApiError::new(StatusCode::CONFLICT, detail)
+    }
+}
+
+tokio::task_local! {
+    /// The id of the request being answered (`x-request-id`).
+    static REQUEST_ID: String;
+}
+
+/// The current request's id, if inside one.
+fn request_id() -> Option<String> {
+    REQUEST_ID.try_with(Clone::clone).ok()
 }
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let body = serde_json::json!({
+        let mut body = serde_json::json!({
             "type": "about:blank",
             "title": self.status.canonical_reason().unwrap_or("Error"),
             "status": self.status.as_u16(),
             "detail": self.detail,
         });
+        if let Some(id) = request_id() {
+            body["request_id"] = serde_json::Value::String(id);
+        }
         let mut response = (self.status, body.to_string()).into_response();
         response.headers_mut().insert(
             header::CONTENT_TYPE,
@@ -69,8 +92,18 @@ impl IntoResponse for ApiError {
 
 type ApiResult<T> = Result<T, ApiError>;
 
-/// The router of the whole API.
+/// A storage failure: a conflict is the client's (409), the rest the daemon's.
+fn store_error(e: super::store::StoreError) -> ApiError {
+    match e {
+        super::store::StoreError::Conflict(m) => ApiError::conflict(m),
+        e => ApiError::internal(e),
+    }
+}
+
+/// The router of the whole API, with a request id, a span and a panic
+/// guard around every request.
 pub fn router(state: Arc<AppState>) -> Router {
+    let request_header = header::HeaderName::from_static("x-request-id");
     Router::new()
         .route("/", get(dashboard))
         .route("/healthz", get(|| async { "ok\n" }))
@@ -96,27 +129,104 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/fields/{id}/simulation", get(get_simulation))
         .route("/v1/fields/{id}/chart.svg", get(get_chart))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
+        .method_not_allowed_fallback(|| async {
+            ApiError::new(
+                StatusCode::METHOD_NOT_ALLOWED,
+                "this endpoint does not take that method (see openapi.yaml)",
+            )
+        })
         .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(axum::middleware::from_fn(guard))
+        .layer(
+            tower_http::trace::TraceLayer::new_for_http()
+                .on_response(
+                    tower_http::trace::DefaultOnResponse::new().level(tracing::Level::INFO),
+                )
+                .make_span_with(|req: &axum::http::Request<axum::body::Body>| {
+                    let id = req
+                        .headers()
+                        .get("x-request-id")
+                        .and_then(|v| v.to_str().ok())
+                        .unwrap_or("");
+                    tracing::info_span!(
+                        "request",
+                        method = %req.method(),
+                        path = %req.uri().path(),
+                        request_id = %id,
+                    )
+                }),
+        )
+        .layer(tower_http::request_id::PropagateRequestIdLayer::new(
+            request_header.clone(),
+        ))
+        .layer(tower_http::request_id::SetRequestIdLayer::new(
+            request_header,
+            tower_http::request_id::MakeRequestUuid,
+        ))
         .with_state(state)
 }
 
-/// Checks the bearer token of a mutating request.
+/// Runs a request with its id in scope; a panic in the handler becomes a
+/// generic 500 problem+json (logged in the request's span, its text never
+/// sent).
+async fn guard(req: axum::extract::Request, next: axum::middleware::Next) -> Response {
+    use futures_util::FutureExt;
+    let id = req
+        .headers()
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    REQUEST_ID
+        .scope(id, async move {
+            match std::panic::AssertUnwindSafe(next.run(req))
+                .catch_unwind()
+                .await
+            {
+                Ok(response) => response,
+                Err(panic) => {
+                    let text = panic
+                        .downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| panic.downcast_ref::<String>().cloned())
+                        .unwrap_or_default();
+                    ApiError::internal(format!("handler panicked: {text}")).into_response()
+                }
+            }
+        })
+        .await
+}
+
+/// The credentials of an `Authorization` header, if its scheme is
+/// `Bearer` (compared case-insensitively, RFC 9110 §11.1).
+fn bearer(headers: &HeaderMap) -> Option<&str> {
+    let value = headers.get(header::AUTHORIZATION)?.to_str().ok()?.trim();
+    let (scheme, token) = value.split_once(' ')?;
+    scheme
+        .eq_ignore_ascii_case("bearer")
+        .then(|| token.trim_start())
+}
+
+/// Whether the request carries the token.
+fn has_token(state: &AppState, headers: &HeaderMap) -> bool {
+    bearer(headers).is_some_and(|given| {
+        // compare without an early exit on the first differing byte
+        let (a, b) = (given.as_bytes(), state.token.as_bytes());
+        a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0
+    })
+}
+
+/// Checks the bearer token of a mutating request: no credentials, or
+/// credentials of another scheme, are 401 (with a `WWW-Authenticate`
+/// challenge); a bearer token that is not the daemon's is 403.
 fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
-    let Some(value) = headers.get(header::AUTHORIZATION) else {
+    if bearer(headers).is_none() {
         return Err(ApiError::new(
             StatusCode::UNAUTHORIZED,
             "this request needs 'Authorization: Bearer <token>'",
         ));
-    };
-    let given = value
-        .to_str()
-        .ok()
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .unwrap_or("");
-    // compare without an early exit on the first differing byte
-    let (a, b) = (given.as_bytes(), state.token.as_bytes());
-    let same = a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0;
-    if same {
+    }
+    if has_token(state, headers) {
         Ok(())
     } else {
         Err(ApiError::new(
@@ -126,23 +236,47 @@ fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     }
 }
 
-/// Parses a JSON body (within the size limit) into `T`.
-fn json_body<T: DeserializeOwned>(body: Result<Bytes, BytesRejection>) -> ApiResult<T> {
-    let bytes = body.map_err(|r| {
+/// The body's bytes (within the size limit).
+fn raw_body(body: Result<Bytes, BytesRejection>) -> ApiResult<Bytes> {
+    body.map_err(|r| {
         let status = r.status();
         if status == StatusCode::PAYLOAD_TOO_LARGE {
             ApiError::new(status, format!("the body exceeds {MAX_BODY} bytes"))
         } else {
             ApiError::new(status, r.body_text())
         }
-    })?;
-    serde_json::from_slice(&bytes).map_err(|e| {
-        let status = if e.is_data() {
+    })
+}
+
+/// Parses a JSON body (within the size limit) into `T`.
+fn json_body<T: DeserializeOwned>(body: Result<Bytes, BytesRejection>) -> ApiResult<T> {
+    parse_json(&raw_body(body)?)
+}
+
+/// Parses JSON into `T`; a value of the wrong type or range names its path
+/// (`zone.low: invalid type …`).
+pub(crate) fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> ApiResult<T> {
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let value: Result<T, _> = serde_path_to_error::deserialize(&mut de);
+    if value.is_ok() {
+        de.end().map_err(|e| {
+            ApiError::new(StatusCode::BAD_REQUEST, format!("invalid JSON body: {e}"))
+        })?;
+    }
+    value.map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        let status = if inner.is_data() {
             StatusCode::UNPROCESSABLE_ENTITY
         } else {
             StatusCode::BAD_REQUEST
         };
-        ApiError::new(status, format!("invalid JSON body: {e}"))
+        let detail = if path.is_empty() || path == "." {
+            format!("invalid JSON body: {inner}")
+        } else {
+            format!("invalid JSON body at '{path}': {inner}")
+        };
+        ApiError::new(status, detail)
     })
 }
 
@@ -204,35 +338,70 @@ async fn create_field(
     State(state): State<Arc<AppState>>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
-) -> ApiResult<(StatusCode, Json<Field>)> {
+) -> ApiResult<(
+    StatusCode,
+    [(header::HeaderName, String); 1],
+    Json<serde_json::Value>,
+)> {
     authorize(&state, &headers)?;
-    let spec: FieldSpec = json_body(body)?;
+    let bytes = raw_body(body)?;
+    let mut spec = field_spec(&bytes)?;
     spec.validate().map_err(ApiError::bad)?;
+    check_target(&state, &spec)?;
+    // a webhook without a secret gets one, shown once in this answer
+    let mut generated = None;
+    if let Actuator::Webhook { secret, .. } = &mut spec.actuator
+        && secret.is_none()
+    {
+        let s = super::random_hex(32).map_err(ApiError::internal)?;
+        *secret = Some(s.clone());
+        generated = Some(s);
+    }
     let engine = state.engine.clone();
     let now = state.clock.now();
-    let field = blocking(move || {
-        engine
-            .store
-            .create_field(&spec, now)
-            .map_err(ApiError::internal)
-    })
-    .await?;
+    let field =
+        blocking(move || engine.store.create_field(&spec, now).map_err(store_error)).await?;
+    // the first cycle runs now, so the field has a setpoint at once
+    super::first_cycle(&state, &field).await;
     start_field(&state, &field);
-    Ok((StatusCode::CREATED, Json(field)))
+    let mut doc = field.public(true);
+    if let (Some(secret), Some(actuator)) = (generated, doc.get_mut("actuator")) {
+        actuator["secret"] = serde_json::Value::String(secret);
+    }
+    let location = format!("/v1/fields/{}", field.id);
+    Ok((
+        StatusCode::CREATED,
+        [(header::LOCATION, location)],
+        Json(doc),
+    ))
 }
 
-async fn list_fields(State(state): State<Arc<AppState>>) -> ApiResult<Json<Vec<Field>>> {
+/// A webhook at a literal address the daemon does not call is refused now.
+fn check_target(state: &AppState, spec: &FieldSpec) -> ApiResult<()> {
+    if let Actuator::Webhook { url, .. } = &spec.actuator {
+        super::webhook::check_literal_target(url, state.settings.webhooks.allow_link_local)
+            .map_err(ApiError::bad)?;
+    }
+    Ok(())
+}
+
+async fn list_fields(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+) -> ApiResult<Json<Vec<serde_json::Value>>> {
     let engine = state.engine.clone();
-    Ok(Json(
-        blocking(move || engine.store.fields().map_err(ApiError::internal)).await?,
-    ))
+    let reveal = has_token(&state, &headers);
+    let fields = blocking(move || engine.store.fields().map_err(ApiError::internal)).await?;
+    Ok(Json(fields.iter().map(|f| f.public(reveal)).collect()))
 }
 
 async fn get_field(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
-) -> ApiResult<Json<Field>> {
-    Ok(Json(load_field(&state, &id).await?))
+    headers: HeaderMap,
+) -> ApiResult<Json<serde_json::Value>> {
+    let field = load_field(&state, &id).await?;
+    Ok(Json(field.public(has_token(&state, &headers))))
 }
 
 /// Merges a JSON object into the field's spec (RFC 7396 merge patch).
@@ -241,7 +410,7 @@ async fn patch_field(
     Path(id): Path<String>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
-) -> ApiResult<Json<Field>> {
+) -> ApiResult<Json<serde_json::Value>> {
     authorize(&state, &headers)?;
     let field = load_field(&state, &id).await?;
     let patch: serde_json::Value = json_body(body)?;
@@ -250,38 +419,89 @@ async fn patch_field(
     }
     let mut doc = serde_json::to_value(&field.spec).map_err(ApiError::internal)?;
     merge(&mut doc, patch);
-    let spec: FieldSpec = serde_json::from_value(doc)
-        .map_err(|e| ApiError::bad(format!("invalid field after the patch: {e}")))?;
+    let text = serde_json::to_vec(&doc).map_err(ApiError::internal)?;
+    let spec: FieldSpec = field_spec(&text)
+        .map_err(|e| ApiError::bad(format!("invalid field after the patch: {}", e.detail)))?;
+    let mut spec = spec;
     spec.validate().map_err(ApiError::bad)?;
+    check_target(&state, &spec)?;
+    let mut generated = None;
+    if let Actuator::Webhook { secret, .. } = &mut spec.actuator
+        && secret.is_none()
+    {
+        let s = super::random_hex(32).map_err(ApiError::internal)?;
+        *secret = Some(s.clone());
+        generated = Some(s);
+    }
     let engine = state.engine.clone();
     let s = spec.clone();
     let id = field.id;
-    blocking(move || {
-        engine
-            .store
-            .update_field(id, &s)
-            .map_err(ApiError::internal)
-    })
-    .await?;
+    blocking(move || engine.store.update_field(id, &s).map_err(store_error)).await?;
     let field = Field { spec, ..field };
     stop_field(&state, field.id);
     start_field(&state, &field);
-    Ok(Json(field))
+    let mut doc = field.public(true);
+    if let (Some(secret), Some(actuator)) = (generated, doc.get_mut("actuator")) {
+        actuator["secret"] = serde_json::Value::String(secret);
+    }
+    Ok(Json(doc))
 }
 
+/// RFC 7396: an object patch merges key by key into an object (a target
+/// that is not one starts empty), null removes a key, anything else
+/// replaces.
 fn merge(doc: &mut serde_json::Value, patch: serde_json::Value) {
-    match (doc, patch) {
-        (serde_json::Value::Object(d), serde_json::Value::Object(p)) => {
-            for (k, v) in p {
-                if v.is_null() {
-                    d.remove(&k);
-                } else {
-                    merge(d.entry(k).or_insert(serde_json::Value::Null), v);
+    match patch {
+        serde_json::Value::Object(p) => {
+            if !doc.is_object() {
+                *doc = serde_json::Value::Object(Default::default());
+            }
+            if let serde_json::Value::Object(d) = doc {
+                for (k, v) in p {
+                    if v.is_null() {
+                        d.remove(&k);
+                    } else {
+                        merge(d.entry(k).or_insert(serde_json::Value::Null), v);
+                    }
                 }
             }
         }
-        (d, p) => *d = p,
+        p => *doc = p,
     }
+}
+
+/// serde reads a struct from a JSON array of its fields too; the API takes
+/// objects only: `value` must be an object, and so must each of `keys` that
+/// it holds (or null).
+fn objects_only(value: &serde_json::Value, what: &str, keys: &[&str]) -> ApiResult<()> {
+    let Some(obj) = value.as_object() else {
+        return Err(ApiError::bad(format!("{what} must be a JSON object")));
+    };
+    for key in keys {
+        if let Some(v) = obj.get(*key)
+            && !(v.is_object() || v.is_null() || (*key == "soil" && v.is_string()))
+        {
+            return Err(ApiError::bad(format!(
+                "invalid JSON body at '{key}': expected an object{}",
+                if *key == "soil" {
+                    " or a texture name"
+                } else {
+                    ""
+                }
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The keys of a field spec that hold objects.
+const FIELD_OBJECTS: &[&str] = &["soil", "crop", "zone", "actuator", "simulation"];
+
+/// A field spec from JSON, objects checked.
+fn field_spec(bytes: &[u8]) -> ApiResult<FieldSpec> {
+    let value: serde_json::Value = parse_json(bytes)?;
+    objects_only(&value, "a field", FIELD_OBJECTS)?;
+    parse_json(bytes)
 }
 
 async fn delete_field(
@@ -337,7 +557,19 @@ async fn post_measurements(
     body: Result<Bytes, BytesRejection>,
 ) -> ApiResult<(StatusCode, Json<serde_json::Value>)> {
     authorize(&state, &headers)?;
-    let raw: RawMeasurements = json_body(body).map_err(|e| {
+    let bytes = raw_body(body)?;
+    let value: serde_json::Value = parse_json(&bytes)?;
+    let shape_ok = match &value {
+        serde_json::Value::Object(_) => true,
+        serde_json::Value::Array(items) => items.iter().all(serde_json::Value::is_object),
+        _ => false,
+    };
+    if !shape_ok {
+        return Err(ApiError::bad(
+            "a body must be one measurement {time, theta, sensor?} or an array of them",
+        ));
+    }
+    let raw: RawMeasurements = parse_json(&bytes).map_err(|e| {
         if e.status == StatusCode::UNPROCESSABLE_ENTITY {
             ApiError::bad(
                 "a body must be one measurement {time, theta, sensor?} or an array of them, \
@@ -383,9 +615,14 @@ async fn post_measurements(
                 m.theta
             )));
         }
-        if m.sensor.as_ref().is_some_and(|s| s.len() > 200) {
+        super::wire::check_time(&format!("measurements[{i}].time"), time).map_err(ApiError::bad)?;
+        if m.sensor
+            .as_ref()
+            .is_some_and(|s| s.chars().count() > super::wire::MAX_NAME_CHARS)
+        {
             return Err(ApiError::bad(format!(
-                "measurements[{i}].sensor has more than 200 characters"
+                "measurements[{i}].sensor has more than {} characters",
+                super::wire::MAX_NAME_CHARS
             )));
         }
         parsed.push(Measurement {
@@ -403,7 +640,7 @@ async fn post_measurements(
         engine
             .store
             .add_measurements(field.id, &parsed)
-            .map_err(ApiError::internal)
+            .map_err(store_error)
     })
     .await?;
     state.metrics.measurements.inc_by(new as u64);
@@ -487,7 +724,9 @@ async fn put_forecast(
     body: Result<Bytes, BytesRejection>,
 ) -> ApiResult<Json<Forecast>> {
     authorize(&state, &headers)?;
-    let raw: RawForecast = json_body(body)?;
+    let bytes = raw_body(body)?;
+    objects_only(&parse_json(&bytes)?, "a forecast", &[])?;
+    let raw: RawForecast = parse_json(&bytes)?;
     let forecast = Forecast {
         issued_at: parse_time("issued_at", &raw.issued_at)?,
         start: parse_time("start", &raw.start)?,
@@ -509,24 +748,27 @@ async fn put_forecast(
     Ok(Json(forecast))
 }
 
+/// The latest posted forecast, or (none posted yet) the climatology the
+/// controller falls back on, marked by `source`.
 async fn get_forecast(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
-) -> ApiResult<Json<Forecast>> {
+) -> ApiResult<Json<serde_json::Value>> {
     let field = load_field(&state, &id).await?;
     let engine = state.engine.clone();
+    let now = state.clock.now();
     blocking(move || {
-        engine
+        let (forecast, source) = match engine
             .store
             .latest_forecast(field.id)
             .map_err(ApiError::internal)?
-            .map(Json)
-            .ok_or_else(|| {
-                ApiError::new(
-                    StatusCode::NOT_FOUND,
-                    format!("field {} has no forecast", field.id),
-                )
-            })
+        {
+            Some(f) => (f, "posted"),
+            None => (engine.climatology_forecast(&field, now), "climatology"),
+        };
+        let mut doc = serde_json::to_value(forecast).map_err(ApiError::internal)?;
+        doc["source"] = serde_json::Value::String(source.into());
+        Ok(Json(doc))
     })
     .await
 }

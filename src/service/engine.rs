@@ -99,6 +99,8 @@ pub struct Engine {
     plants: Mutex<HashMap<i64, Arc<Mutex<SimulatedPlant>>>>,
     /// Set at shutdown: running solves stop as at their time budget.
     pub cancel: Arc<std::sync::atomic::AtomicBool>,
+    /// Longest span a simulated plant replays [s of clock time].
+    max_catch_up_s: f64,
 }
 
 /// A failure of the work (not of the input).
@@ -167,7 +169,15 @@ impl Engine {
             models,
             plants: Mutex::new(HashMap::new()),
             cancel: Arc::default(),
+            max_catch_up_s: 2.0 * 86_400.0,
         }
+    }
+
+    /// The longest span [s] a simulated plant replays to catch up with the
+    /// clock; what lies before is skipped (the plant keeps its state).
+    pub fn catch_up_limit(mut self, seconds: f64) -> Engine {
+        self.max_catch_up_s = seconds;
+        self
     }
 
     fn weather_at(&self, s: Scenario, day_zero: DateTime<Utc>, t: DateTime<Utc>) -> WeatherStep {
@@ -274,6 +284,24 @@ impl Engine {
                 true_theta: Some(p.plant.water_content()),
             });
         }
+        // a bounded replay: a plant far behind the clock skips ahead
+        let intervals_behind =
+            (now - p.time).num_milliseconds() as f64 / 1e3 / p.spec.measurement_interval_s;
+        let most = (self.max_catch_up_s / p.spec.measurement_interval_s).floor();
+        if intervals_behind > most + 1.0 {
+            let skip = (intervals_behind - most).floor();
+            let from = p.time;
+            let step = p.spec.measurement_interval_s;
+            p.time += TimeDelta::milliseconds((skip * step * 1e3) as i64);
+            tracing::warn!(
+                field = field.id,
+                from = %from,
+                to = %p.time,
+                "simulation {} s behind the clock: skipped to replay at most {} s (limits.max_catch_up_s)",
+                (now - from).num_seconds(),
+                self.max_catch_up_s
+            );
+        }
         let mut failure = None;
         while p.time + interval <= now {
             if p.time >= rate_until {
@@ -362,6 +390,29 @@ impl Engine {
 
     /// The horizon's weather (amounts per control period) from the latest
     /// forecast, or the climatology where it is missing or stale.
+    /// The climatological forecast a cycle at `now` falls back on: the
+    /// horizon of control periods from the last period boundary.
+    pub fn climatology_forecast(&self, field: &Field, now: DateTime<Utc>) -> Forecast {
+        let period = field.spec.control_period_s;
+        let start = super::clock::boundary_at_or_before(now, period);
+        let n = field.spec.mpc_settings().horizon;
+        let steps: Vec<WeatherStep> = (0..n)
+            .map(|k| {
+                self.climatology(
+                    start + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64),
+                    period,
+                )
+            })
+            .collect();
+        Forecast {
+            issued_at: start,
+            start,
+            step_s: period,
+            et0_mm: steps.iter().map(|w| w.et0_mm).collect(),
+            precip_mm: steps.iter().map(|w| w.precip_mm).collect(),
+        }
+    }
+
     fn horizon_weather(
         &self,
         field: &Field,
@@ -429,10 +480,8 @@ impl Engine {
         if simulated {
             if let Err(e) = self.advance_plant(field, now) {
                 // the cycle still decides, on the latest stored measurement
-                eprintln!(
-                    "field {}: simulation before the cycle at {now}: {e}",
-                    field.id
-                );
+                tracing::warn!(field = field.id, at = %now, error = %e,
+                    "simulation before the cycle failed");
                 degraded.push("simulation-failed".to_string());
             }
             self.simulated_forecast(field, now, n)?;

@@ -14,6 +14,7 @@ pub struct Metrics {
     pub solve_seconds: Histogram,
     pub theta: GaugeVec,
     pub setpoint: GaugeVec,
+    pub webhooks: IntCounterVec,
 }
 
 impl Metrics {
@@ -62,8 +63,17 @@ impl Metrics {
             &["field"],
         )
         .expect("valid metric");
+        let webhooks = IntCounterVec::new(
+            Opts::new(
+                "rootzone_webhook_deliveries_total",
+                "Webhook deliveries by outcome (delivered, failed)",
+            ),
+            &["outcome"],
+        )
+        .expect("valid metric");
         for c in [
-            Box::new(measurements.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(webhooks.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(measurements.clone()),
             Box::new(cycles.clone()),
             Box::new(degraded.clone()),
             Box::new(solve_seconds.clone()),
@@ -80,6 +90,7 @@ impl Metrics {
             solve_seconds,
             theta,
             setpoint,
+            webhooks,
         }
     }
 

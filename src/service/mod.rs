@@ -9,6 +9,7 @@ pub mod engine;
 pub mod metrics;
 pub mod settings;
 pub mod store;
+pub mod webhook;
 pub mod wire;
 
 use std::collections::HashMap;
@@ -67,7 +68,6 @@ pub struct AppState {
     field_tasks: Mutex<HashMap<i64, CancellationToken>>,
     shutdown: CancellationToken,
     tracker: TaskTracker,
-    http: reqwest::Client,
 }
 
 impl AppState {
@@ -96,19 +96,46 @@ fn read_token(dir: &Path) -> Result<String, ServeError> {
             return Ok(token);
         }
     }
-    let mut bytes = [0u8; 24];
-    use std::io::Read;
-    std::fs::File::open("/dev/urandom")
-        .and_then(|mut f| f.read_exact(&mut bytes))
-        .map_err(|e| ServeError::Io(format!("cannot read /dev/urandom: {e}")))?;
-    let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    let token = random_hex(24).map_err(ServeError::Io)?;
     write_private(&path, &token)
         .map_err(|e| ServeError::Io(format!("cannot write {}: {e}", path.display())))?;
     Ok(token)
 }
 
+/// Logging through `tracing` to stderr: `RUST_LOG` when set, else the
+/// settings' level; text or JSON lines.
+pub fn init_logging(log: &settings::LogSettings) {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        EnvFilter::try_new(&log.level).unwrap_or_else(|_| EnvFilter::new("info"))
+    });
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let _ = match log.format {
+        settings::LogFormat::Json => builder.json().try_init(),
+        settings::LogFormat::Text => builder.try_init(),
+    };
+}
+
+/// Makes rustls use the ring crypto provider for every outgoing HTTPS call
+/// (reqwest is built with rustls and no provider of its own).
+pub fn install_tls() {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}
+
+/// `bytes` random bytes from the system's generator, as hex.
+pub(crate) fn random_hex(bytes: usize) -> Result<String, String> {
+    let mut buf = vec![0u8; bytes];
+    use std::io::Read;
+    std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| f.read_exact(&mut buf))
+        .map_err(|e| format!("cannot read /dev/urandom: {e}"))?;
+    Ok(hex::encode(buf))
+}
+
 #[cfg(unix)]
-fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
+pub(crate) fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     let mut f = std::fs::OpenOptions::new()
@@ -122,7 +149,7 @@ fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
 }
 
 #[cfg(not(unix))]
-fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
+pub(crate) fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
     std::fs::write(path, text)
 }
 
@@ -130,6 +157,7 @@ impl App {
     /// Opens the storage, loads the models, binds the listener.
     pub async fn build(settings: Settings) -> Result<App, ServeError> {
         settings.validate()?;
+        install_tls();
         let store = Arc::new(store::Store::open(&settings.data_dir)?);
         let token = match &settings.api_token {
             Some(t) => t.clone(),
@@ -155,23 +183,46 @@ impl App {
         let origin = match store.meta("clock")? {
             Some(t) if settings.clock.speedup != 1.0 => DateTime::parse_from_rfc3339(&t)
                 .map(|t| t.to_utc())
-                .unwrap_or_else(|_| Utc::now()),
+                .ok()
+                .filter(|t| wire::check_time("clock", *t).is_ok())
+                .unwrap_or_else(Utc::now),
             _ => Utc::now(),
         };
         let clock = match settings.clock.epoch {
-            Some(epoch) => Clock::anchored(epoch, settings.clock.speedup),
+            Some(epoch) => Clock::anchored(epoch, settings.clock.speedup)
+                .map_err(|e| settings::SettingsError(format!("clock.epoch: {e}")))?,
             None => Clock::new(origin, settings.clock.speedup),
         };
         if store.fields()?.is_empty() {
             for spec in &settings.fields {
-                store.create_field(spec, clock.now())?;
+                let mut spec = spec.clone();
+                if let Actuator::Webhook { secret, .. } = &mut spec.actuator
+                    && secret.is_none()
+                {
+                    // a configured webhook without a secret: one is made and
+                    // logged once, for the receiver
+                    let s = random_hex(32).map_err(ServeError::Io)?;
+                    tracing::warn!(field = %spec.name, secret = %s,
+                        "webhook secret generated (set actuator.secret in the configuration to choose it)");
+                    *secret = Some(s);
+                }
+                store.create_field(&spec, clock.now())?;
             }
         }
         let listener = TcpListener::bind(&settings.listen)
             .await
             .map_err(|e| ServeError::Io(format!("cannot listen on {}: {e}", settings.listen)))?;
+        if let Ok(addr) = listener.local_addr()
+            && !addr.ip().is_loopback()
+        {
+            tracing::warn!(%addr, "listening beyond loopback: the read API (GET) answers anyone who \
+                can reach it, and a client needs the token only to change things; \
+                put it behind a firewall or a TLS proxy");
+        }
         let state = Arc::new(AppState {
-            engine: Arc::new(Engine::new(store, models)),
+            engine: Arc::new(
+                Engine::new(store, models).catch_up_limit(settings.limits.max_catch_up_s),
+            ),
             clock,
             metrics: Metrics::new(),
             token,
@@ -181,10 +232,6 @@ impl App {
             field_tasks: Mutex::new(HashMap::new()),
             shutdown: CancellationToken::new(),
             tracker: TaskTracker::new(),
-            http: reqwest::Client::builder()
-                .timeout(std::time::Duration::from_secs(10))
-                .build()
-                .map_err(|e| ServeError::Io(format!("HTTP client: {e}")))?,
         });
         Ok(App { state, listener })
     }
@@ -200,8 +247,9 @@ impl App {
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<(), ServeError> {
         let state = self.state;
+        // every field's first cycle runs now, then at its period boundaries
         for field in state.engine.store.fields()? {
-            start_field(&state, &field);
+            spawn_field(&state, &field, true);
         }
         let router = api::router(state.clone());
         let cancel = state.shutdown.clone();
@@ -224,7 +272,7 @@ impl App {
             .await
             .is_err()
         {
-            eprintln!(
+            tracing::warn!(
                 "shutdown: tasks still running after {SHUTDOWN_GRACE:?}; stopping without them"
             );
         }
@@ -239,6 +287,30 @@ impl App {
 /// Starts the scheduled tasks of a field: its control loop and, for a
 /// simulated field, its plant.
 pub(crate) fn start_field(state: &Arc<AppState>, field: &Field) {
+    spawn_field(state, field, false)
+}
+
+/// Runs a field's first cycle now (at creation and at start): a simulated
+/// plant first takes its reading, so the cycle starts from a measurement.
+pub(crate) async fn first_cycle(state: &Arc<AppState>, field: &Field) {
+    let now = state.clock.now();
+    if field.spec.actuator == Actuator::Simulated
+        && let Ok(permit) = state.permits.clone().acquire_owned().await
+    {
+        let (engine, f) = (state.engine.clone(), field.clone());
+        match tokio::task::spawn_blocking(move || engine.advance_plant(&f, now)).await {
+            Ok(Ok(n)) => state.metrics.measurements.inc_by(n as u64),
+            Ok(Err(e)) => tracing::warn!(field = field.id, error = %e, "simulation"),
+            Err(e) => tracing::error!(field = field.id, error = %e, "simulation task failed"),
+        }
+        drop(permit);
+    }
+    if let Err(e) = run_cycle(state, field.clone(), now).await {
+        tracing::warn!(field = field.id, error = %e, "first control cycle");
+    }
+}
+
+fn spawn_field(state: &Arc<AppState>, field: &Field, cycle_now: bool) {
     let token = state.shutdown.child_token();
     if let Some(old) = state
         .field_tasks
@@ -251,7 +323,8 @@ pub(crate) fn start_field(state: &Arc<AppState>, field: &Field) {
     let (s, id, t) = (state.clone(), field.id, token.clone());
     state
         .tracker
-        .spawn(async move { control_loop(s, id, t).await });
+        .spawn(async move { control_loop(s, id, t, cycle_now).await });
+    // (cycle_now: the daemon's start; a new field has had its first cycle)
     if field.spec.actuator == Actuator::Simulated {
         let (s, id) = (state.clone(), field.id);
         state
@@ -279,7 +352,13 @@ pub(crate) fn stop_field(state: &AppState, id: i64) {
 }
 
 /// One cycle per control period, at the period boundaries of the clock.
-async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) {
+async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, cycle_now: bool) {
+    if cycle_now && let Ok(Some(field)) = state.engine.store.field(id) {
+        tokio::select! {
+            _ = first_cycle(&state, &field) => {}
+            _ = cancel.cancelled() => return,
+        }
+    }
     loop {
         let Ok(Some(field)) = state.engine.store.field(id) else {
             return;
@@ -298,7 +377,7 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) 
             }
         }
         if let Err(e) = run_cycle(&state, field, next).await {
-            eprintln!("field {id}: control cycle at {next}: {e}");
+            tracing::warn!(field = id, at = %next, error = %e, "control cycle failed");
         }
     }
 }
@@ -350,18 +429,41 @@ async fn plant_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) {
         let now = state.clock.now();
         match tokio::task::spawn_blocking(move || engine.advance_plant(&field, now)).await {
             Ok(Ok(n)) => state.metrics.measurements.inc_by(n as u64),
-            Ok(Err(e)) => eprintln!("field {id}: simulation: {e}"),
-            Err(e) => eprintln!("field {id}: simulation task: {e}"),
+            Ok(Err(e)) => tracing::warn!(field = id, error = %e, "simulation"),
+            Err(e) => tracing::error!(field = id, error = %e, "simulation task failed"),
         }
     }
 }
 
-/// Runs one control cycle on the blocking pool, records it in the metrics
-/// and publishes the setpoint.
+/// Runs one control cycle on the blocking pool (in a span naming the field,
+/// model, status, iterations and solve time), records it in the metrics and
+/// publishes the setpoint.
 pub(crate) async fn run_cycle(
     state: &Arc<AppState>,
     field: Field,
     at: DateTime<Utc>,
+) -> Result<Setpoint, String> {
+    use tracing::Instrument;
+    let span = tracing::info_span!(
+        "cycle",
+        field = field.id,
+        model = field.spec.model.name(),
+        at = %at,
+        status = tracing::field::Empty,
+        iterations = tracing::field::Empty,
+        solve_ms = tracing::field::Empty,
+        amount_mm = tracing::field::Empty,
+    );
+    run_cycle_in(state, field, at, span.clone())
+        .instrument(span)
+        .await
+}
+
+async fn run_cycle_in(
+    state: &Arc<AppState>,
+    field: Field,
+    at: DateTime<Utc>,
+    span: tracing::Span,
 ) -> Result<Setpoint, String> {
     let _permit = state
         .permits
@@ -371,10 +473,19 @@ pub(crate) async fn run_cycle(
         .map_err(|e| e.to_string())?;
     let engine = state.engine.clone();
     let f = field.clone();
-    let setpoint = tokio::task::spawn_blocking(move || engine.control_cycle(&f, at))
-        .await
-        .map_err(|e| format!("control task: {e}"))?
-        .map_err(|e| e.to_string())?;
+    let setpoint = match tokio::task::spawn_blocking(move || engine.control_cycle(&f, at)).await {
+        Ok(result) => result.map_err(|e| e.to_string())?,
+        Err(e) => {
+            // a panic's text stays in the log
+            tracing::error!(error = %e, "control cycle panicked");
+            return Err("the control cycle failed (see the daemon's log)".into());
+        }
+    };
+    span.record("status", setpoint.status.as_str());
+    span.record("iterations", setpoint.iterations);
+    span.record("solve_ms", setpoint.solve_ms);
+    span.record("amount_mm", setpoint.amount_mm);
+    tracing::info!(degraded = ?setpoint.degraded, "setpoint published");
     let m = &state.metrics;
     m.cycles
         .with_label_values(&[setpoint.status.as_str()])
@@ -396,29 +507,24 @@ pub(crate) async fn run_cycle(
         .engine
         .store
         .set_meta("clock", &state.clock.now().to_rfc3339());
-    if let Actuator::Webhook { url } = &field.spec.actuator {
-        let (client, url, body) = (state.http.clone(), url.clone(), setpoint.clone());
-        state
-            .tracker
-            .spawn(async move { publish(client, url, body).await });
+    if let Actuator::Webhook { url, secret } = &field.spec.actuator {
+        use tracing::Instrument;
+        let body = serde_json::to_vec(&setpoint).map_err(|e| e.to_string())?;
+        let (url, secret) = (url.clone(), secret.clone());
+        let allow = state.settings.webhooks.allow_link_local;
+        let cancel = state.shutdown.clone();
+        let delivered = m.webhooks.clone();
+        state.tracker.spawn(
+            async move {
+                let ok = webhook::deliver(&url, secret.as_deref(), body, allow, &cancel).await;
+                delivered
+                    .with_label_values(&[if ok { "delivered" } else { "failed" }])
+                    .inc();
+            }
+            .instrument(tracing::Span::current()),
+        );
     }
     Ok(setpoint)
-}
-
-/// POSTs a setpoint to a webhook: three attempts, 1 s and 2 s apart.
-async fn publish(client: reqwest::Client, url: String, setpoint: Setpoint) {
-    for attempt in 0..3u32 {
-        match client.post(&url).json(&setpoint).send().await {
-            Ok(r) if r.status().is_success() => return,
-            Ok(r) => eprintln!(
-                "webhook {url}: HTTP {} (attempt {})",
-                r.status(),
-                attempt + 1
-            ),
-            Err(e) => eprintln!("webhook {url}: {e} (attempt {})", attempt + 1),
-        }
-        tokio::time::sleep(std::time::Duration::from_secs(1 << attempt)).await;
-    }
 }
 
 /// Resolves on SIGINT or SIGTERM.

@@ -3,6 +3,8 @@
 //! once at start.
 
 use std::net::SocketAddr;
+
+use super::wire::{check_range, check_time};
 use std::path::{Path, PathBuf};
 
 use figment::Figment;
@@ -23,6 +25,10 @@ pub const ENV_KEYS: &[&str] = &[
     "limits.max_batch",
     "limits.max_future_skew_s",
     "limits.worker_threads",
+    "limits.max_catch_up_s",
+    "log.format",
+    "log.level",
+    "webhooks.allow_link_local",
 ];
 
 /// The environment variable of a settings key.
@@ -46,6 +52,10 @@ pub struct Settings {
     pub models_dir: Option<PathBuf>,
     pub clock: ClockSettings,
     pub limits: Limits,
+    #[serde(default)]
+    pub log: LogSettings,
+    #[serde(default)]
+    pub webhooks: WebhookSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
 }
@@ -54,8 +64,9 @@ pub struct Settings {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ClockSettings {
-    /// Simulated seconds per real second: 1 is real time, 720 turns 2 h
-    /// into 10 s (`ROOTZONE_CLOCK__SPEEDUP`).
+    /// Simulated seconds per real second, in (0, 100000]: 1 is real time,
+    /// 720 turns 2 h into 10 s (`ROOTZONE_CLOCK__SPEEDUP`; `1e3` is fine).
+    #[serde(deserialize_with = "lenient_f64")]
     pub speedup: f64,
     /// A shared epoch (RFC 3339, `ROOTZONE_CLOCK__EPOCH`): clock time is then
     /// epoch + (real time − epoch) × speedup, the same in every process
@@ -71,11 +82,82 @@ pub struct ClockSettings {
 pub struct Limits {
     /// Largest number of measurements in one request.
     pub max_batch: usize,
-    /// How far in the future (clock time) a timestamp may lie [s].
+    /// How far in the future (clock time) a timestamp may lie [s], in
+    /// [0, 86400].
+    #[serde(deserialize_with = "lenient_f64")]
     pub max_future_skew_s: f64,
-    /// Threads of the blocking pool that runs control cycles and simulations.
+    /// Threads of the blocking pool that runs control cycles and
+    /// simulations, 1 … 64.
     pub worker_threads: usize,
+    /// Longest span [s of clock time] a simulated plant replays after a
+    /// stop (or from a `simulation.start` in the past), in [0, 30 days];
+    /// the rest is skipped with a warning.
+    #[serde(default = "default_catch_up", deserialize_with = "lenient_f64")]
+    pub max_catch_up_s: f64,
 }
+
+fn default_catch_up() -> f64 {
+    2.0 * 86_400.0
+}
+
+/// Logging: human-readable lines or JSON, and the level (`RUST_LOG`, when
+/// set, overrides `level`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LogSettings {
+    /// `text` or `json` (`ROOTZONE_LOG__FORMAT`).
+    pub format: LogFormat,
+    /// A tracing filter, e.g. `info` or `rootzone=debug,tower_http=info`
+    /// (`ROOTZONE_LOG__LEVEL`).
+    pub level: String,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    #[default]
+    Text,
+    Json,
+}
+
+impl Default for LogSettings {
+    fn default() -> Self {
+        LogSettings {
+            format: LogFormat::Text,
+            level: "info".into(),
+        }
+    }
+}
+
+/// Where webhooks may go.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WebhookSettings {
+    /// Allow targets at link-local and cloud-metadata addresses
+    /// (`ROOTZONE_WEBHOOKS__ALLOW_LINK_LOCAL`; off by default).
+    pub allow_link_local: bool,
+}
+
+/// A number given as a number or as text (`1e3`, as environment variables
+/// carry it).
+pub fn lenient_f64<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Number {
+        Value(f64),
+        Text(String),
+    }
+    match Number::deserialize(d)? {
+        Number::Value(v) => Ok(v),
+        Number::Text(t) => t
+            .trim()
+            .parse()
+            .map_err(|_| serde::de::Error::custom(format!("'{t}' is not a number"))),
+    }
+}
+
+/// Largest clock speedup.
+pub const MAX_SPEEDUP: f64 = 100_000.0;
 
 impl Default for Settings {
     /// Storage under `./data`, the API on 127.0.0.1:8080, real time, one
@@ -94,7 +176,10 @@ impl Default for Settings {
                 max_batch: 10_000,
                 max_future_skew_s: 300.0,
                 worker_threads: 2,
+                max_catch_up_s: default_catch_up(),
             },
+            log: LogSettings::default(),
+            webhooks: WebhookSettings::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -125,34 +210,96 @@ impl Settings {
 
     pub fn validate(&self) -> Result<(), SettingsError> {
         let bad = |m: String| Err(SettingsError(m));
-        if self.listen.parse::<SocketAddr>().is_err() {
+        listen_addresses("listen", &self.listen).map_err(SettingsError)?;
+        self.clock.validate().map_err(SettingsError)?;
+        let l = &self.limits;
+        if !(1..=1_000_000).contains(&l.max_batch) {
             return bad(format!(
-                "listen: '{}' is not an address:port (e.g. 127.0.0.1:8080)",
-                self.listen
+                "limits.max_batch = {} must lie in [1, 1000000]",
+                l.max_batch
             ));
         }
-        if !(self.clock.speedup.is_finite() && self.clock.speedup > 0.0) {
+        if !(1..=64).contains(&l.worker_threads) {
             return bad(format!(
-                "clock.speedup must be > 0, got {}",
-                self.clock.speedup
+                "limits.worker_threads = {} must lie in [1, 64]",
+                l.worker_threads
             ));
         }
-        if self.limits.max_batch == 0 || self.limits.worker_threads == 0 {
-            return bad("limits.max_batch and limits.worker_threads must be ≥ 1".into());
-        }
-        if !(self.limits.max_future_skew_s.is_finite() && self.limits.max_future_skew_s >= 0.0) {
-            return bad("limits.max_future_skew_s must be ≥ 0".into());
+        check_range(
+            "limits.max_future_skew_s",
+            l.max_future_skew_s,
+            (0.0, 86_400.0),
+        )
+        .map_err(SettingsError)?;
+        check_range(
+            "limits.max_catch_up_s",
+            l.max_catch_up_s,
+            (0.0, 30.0 * 86_400.0),
+        )
+        .map_err(SettingsError)?;
+        if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
+            return bad(format!(
+                "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",
+                self.log.level
+            ));
         }
         if let Some(token) = &self.api_token
-            && token.trim().len() < 8
+            && !(8..=200).contains(&token.trim().len())
         {
-            return bad("api_token must have at least 8 characters".into());
+            return bad("api_token must have 8 to 200 characters".into());
         }
+        let mut names = std::collections::HashSet::new();
         for (i, field) in self.fields.iter().enumerate() {
             field
                 .validate()
                 .map_err(|m| SettingsError(format!("fields[{i}]: {m}")))?;
+            if !names.insert(field.name.as_str()) {
+                return bad(format!(
+                    "fields[{i}]: the name '{}' is used twice; names are unique",
+                    field.name
+                ));
+            }
         }
         Ok(())
     }
+}
+
+impl ClockSettings {
+    /// Speedup in (0, 100000]; an epoch, and the clock it gives now, in the
+    /// years 2000 … 2199.
+    pub fn validate(&self) -> Result<(), String> {
+        let s = self.speedup;
+        if !(s.is_finite() && s > 0.0 && s <= MAX_SPEEDUP) {
+            return Err(format!(
+                "clock.speedup = {s} must lie in (0, {MAX_SPEEDUP}]"
+            ));
+        }
+        if let Some(epoch) = self.epoch {
+            check_time("clock.epoch", epoch)?;
+            super::clock::Clock::anchored(epoch, s)
+                .map_err(|e| format!("clock.epoch with clock.speedup {s}: {e}"))?;
+        }
+        Ok(())
+    }
+}
+
+/// The addresses `host:port` stands for (a name such as `localhost:8080`,
+/// or an IP address), or a message naming `key`.
+pub fn listen_addresses(key: &str, text: &str) -> Result<Vec<SocketAddr>, String> {
+    use std::net::ToSocketAddrs;
+    let hint = format!("{key}: '{text}' is not host:port (e.g. 127.0.0.1:8080 or localhost:8080)");
+    let Some((_, port)) = text.rsplit_once(':') else {
+        return Err(hint);
+    };
+    if port.parse::<u16>().is_err() {
+        return Err(hint);
+    }
+    let addrs: Vec<SocketAddr> = text
+        .to_socket_addrs()
+        .map_err(|e| format!("{key}: cannot resolve '{text}': {e}"))?
+        .collect();
+    if addrs.is_empty() {
+        return Err(format!("{key}: '{text}' resolves to no address"));
+    }
+    Ok(addrs)
 }

@@ -45,6 +45,10 @@ const MIGRATIONS: &[&str] = &[
      CREATE UNIQUE INDEX measurements_once ON measurements(field_id, time, COALESCE(sensor, ''));",
     // the noise-free θ of the built-in simulated fields, for the dashboard
     "ALTER TABLE measurements ADD COLUMN true_theta REAL;",
+    // field names are unique: older duplicates get their id appended
+    "UPDATE fields SET spec = json_set(spec, '$.name', json_extract(spec, '$.name') || ' #' || id)
+         WHERE id NOT IN (SELECT MIN(id) FROM fields GROUP BY json_extract(spec, '$.name'));
+     CREATE UNIQUE INDEX fields_by_name ON fields(json_extract(spec, '$.name'));",
 ];
 
 /// A storage operation failed.
@@ -56,11 +60,71 @@ pub enum StoreError {
     Json(#[from] serde_json::Error),
     #[error("{0}")]
     Io(String),
+    /// The write contradicts what is stored (the message names both).
+    #[error("{0}")]
+    Conflict(String),
+}
+
+/// A unique-constraint violation as a conflict naming `what`.
+fn conflict(e: rusqlite::Error, what: impl FnOnce() -> String) -> StoreError {
+    match e {
+        rusqlite::Error::SqliteFailure(f, _)
+            if f.code == rusqlite::ErrorCode::ConstraintViolation =>
+        {
+            StoreError::Conflict(what())
+        }
+        e => StoreError::Sql(e),
+    }
 }
 
 /// The database.
 pub struct Store {
     conn: Mutex<Connection>,
+}
+
+/// The files the daemon keeps in its data folder.
+const OWN_FILES: &[&str] = &[
+    "rootzone.sqlite3",
+    "rootzone.sqlite3-wal",
+    "rootzone.sqlite3-shm",
+    "api-token",
+];
+
+#[cfg(unix)]
+fn private(dir: &Path, file: &Path) -> std::io::Result<()> {
+    use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
+    // a folder of the daemon's own: 0700; a shared one (say ".") is left
+    // as it is, with a warning
+    let foreign = std::fs::read_dir(dir)?
+        .filter_map(Result::ok)
+        .any(|e| !OWN_FILES.contains(&e.file_name().to_string_lossy().as_ref()));
+    let mode = std::fs::metadata(dir)?.permissions().mode() & 0o777;
+    if !foreign {
+        if mode != 0o700 {
+            std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o700))?;
+        }
+    } else if mode & 0o077 != 0 {
+        tracing::warn!(dir = %dir.display(), mode = format!("{mode:o}"),
+            "the data folder holds other files and is open to other users; left as it is");
+    }
+    // the database (and the WAL files SQLite makes with its mode): 0600
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .mode(0o600)
+        .open(file)?;
+    for name in OWN_FILES.iter().take(3) {
+        let path = dir.join(name);
+        if path.exists() {
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600))?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(not(unix))]
+fn private(_dir: &Path, _file: &Path) -> std::io::Result<()> {
+    Ok(())
 }
 
 fn millis(t: DateTime<Utc>) -> i64 {
@@ -73,10 +137,15 @@ fn time(ms: i64) -> DateTime<Utc> {
 
 impl Store {
     /// Opens (creating) `dir/rootzone.sqlite3` and migrates it.
+    /// The folder is made private (0700) when the daemon creates it or it
+    /// holds only the daemon's files, and the database file is 0600.
     pub fn open(dir: &Path) -> Result<Store, StoreError> {
         std::fs::create_dir_all(dir)
             .map_err(|e| StoreError::Io(format!("cannot create {}: {e}", dir.display())))?;
-        let conn = Connection::open(dir.join("rootzone.sqlite3"))?;
+        let file = dir.join("rootzone.sqlite3");
+        private(dir, &file)
+            .map_err(|e| StoreError::Io(format!("cannot restrict {}: {e}", dir.display())))?;
+        let conn = Connection::open(&file)?;
         conn.pragma_update(None, "journal_mode", "WAL")?;
         // NORMAL in WAL mode: a committed write survives a crash of the
         // process (kill -9); only a power cut can lose the last commits
@@ -129,7 +198,8 @@ impl Store {
             c.execute(
                 "INSERT INTO fields(created_at, spec) VALUES (?1, ?2)",
                 params![millis(now), body],
-            )?;
+            )
+            .map_err(|e| conflict(e, || format!("a field named '{}' exists", spec.name)))?;
             Ok(Field {
                 id: c.last_insert_rowid(),
                 created_at: time(millis(now)),
@@ -186,7 +256,9 @@ impl Store {
             Ok(c.execute(
                 "UPDATE fields SET spec = ?2 WHERE id = ?1",
                 params![id, body],
-            )? == 1)
+            )
+            .map_err(|e| conflict(e, || format!("a field named '{}' exists", spec.name)))?
+                == 1)
         })
     }
 
@@ -196,26 +268,48 @@ impl Store {
     }
 
     /// Stores a batch of measurements in one transaction: all or nothing.
-    /// A measurement whose (time, sensor) the field already has is skipped
-    /// (a client resending after a lost acknowledgement); returns how many
-    /// were new.
+    /// A measurement whose (time, sensor) the field already has with the
+    /// same θ is skipped (a client resending after a lost acknowledgement);
+    /// with another θ the whole batch is refused with a [`StoreError::Conflict`]
+    /// naming both values. Returns how many were new.
     pub fn add_measurements(&self, field: i64, batch: &[Measurement]) -> Result<usize, StoreError> {
         self.with(|c| {
             let tx = c.transaction()?;
             let mut new = 0;
             {
-                let mut stmt = tx.prepare_cached(
-                    "INSERT INTO measurements(field_id, time, theta, sensor, true_theta)
-                     VALUES (?1, ?2, ?3, ?4, ?5) ON CONFLICT DO NOTHING",
+                let mut existing = tx.prepare_cached(
+                    "SELECT theta FROM measurements
+                     WHERE field_id = ?1 AND time = ?2 AND COALESCE(sensor, '') = COALESCE(?3, '')",
                 )?;
-                for m in batch {
-                    new += stmt.execute(params![
-                        field,
-                        millis(m.time),
-                        m.theta,
-                        m.sensor,
-                        m.true_theta
-                    ])?;
+                let mut insert = tx.prepare_cached(
+                    "INSERT INTO measurements(field_id, time, theta, sensor, true_theta)
+                     VALUES (?1, ?2, ?3, ?4, ?5)",
+                )?;
+                for (i, m) in batch.iter().enumerate() {
+                    let stored: Option<f64> = existing
+                        .query_row(params![field, millis(m.time), m.sensor], |r| r.get(0))
+                        .optional()?;
+                    match stored {
+                        Some(theta) if theta == m.theta => {}
+                        Some(theta) => {
+                            return Err(StoreError::Conflict(format!(
+                                "measurements[{i}]: field {field} already has θ = {theta} at {} \
+                                 from sensor '{}'; this one says θ = {}",
+                                m.time.to_rfc3339(),
+                                m.sensor.as_deref().unwrap_or(""),
+                                m.theta
+                            )));
+                        }
+                        None => {
+                            new += insert.execute(params![
+                                field,
+                                millis(m.time),
+                                m.theta,
+                                m.sensor,
+                                m.true_theta
+                            ])?;
+                        }
+                    }
                 }
             }
             tx.commit()?;

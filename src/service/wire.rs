@@ -7,6 +7,91 @@ use serde::{Deserialize, Serialize};
 use crate::control::{MpcSettings, ZoneSettings};
 use crate::soil::{Crop, Texture, VanGenuchten};
 
+/// The documented ranges of what comes in (`openapi.yaml` states the same).
+/// Longest field or sensor name [characters].
+pub const MAX_NAME_CHARS: usize = 200;
+/// Irrigation rate limit [m/s]: (0, 1e-4], i.e. up to 360 mm/h.
+pub const IRRIGATION_MAX: (f64, f64) = (0.0, 1e-4);
+/// Control period [s]: one minute to one day.
+pub const CONTROL_PERIOD_S: (f64, f64) = (60.0, 86_400.0);
+/// Wait for a boundary's measurement [s].
+pub const MEASUREMENT_WAIT_S: (f64, f64) = (0.0, 3_600.0);
+/// Crop coefficient Kc.
+pub const CROP_COEFFICIENT: (f64, f64) = (0.0, 2.0);
+/// Initial head of a simulated plant [m].
+pub const INITIAL_HEAD: (f64, f64) = (-100.0, -1e-3);
+/// Forecast step [s].
+pub const FORECAST_STEP_S: (f64, f64) = (60.0, 86_400.0);
+/// Largest forecast span [s]: 30 days.
+pub const FORECAST_SPAN_S: f64 = 30.0 * 86_400.0;
+/// Largest ET0 rate of a forecast [mm/h] (the highest hourly reference
+/// evapotranspiration observed is about 1.5 mm/h).
+pub const MAX_ET0_MM_PER_H: f64 = 2.0;
+/// Largest precipitation rate of a forecast [mm/h] (the world record for one
+/// hour is about 305 mm).
+pub const MAX_PRECIP_MM_PER_H: f64 = 400.0;
+/// Every timestamp lies in the years 2000 … 2199.
+pub const EARLIEST_YEAR: i32 = 2000;
+pub const LATEST_YEAR: i32 = 2199;
+
+/// `value` in [lo, hi], or a message naming `name` and the range.
+pub fn check_range(name: &str, value: f64, (lo, hi): (f64, f64)) -> Result<(), String> {
+    if value.is_finite() && (lo..=hi).contains(&value) {
+        Ok(())
+    } else {
+        Err(format!("{name} = {value} must lie in [{lo}, {hi}]"))
+    }
+}
+
+/// A timestamp in the years 2000 … 2199, or a message naming `name`.
+pub fn check_time(name: &str, t: DateTime<Utc>) -> Result<(), String> {
+    use chrono::Datelike;
+    if (EARLIEST_YEAR..=LATEST_YEAR).contains(&t.year()) {
+        Ok(())
+    } else {
+        Err(format!(
+            "{name} = {} must lie in the years {EARLIEST_YEAR} to {LATEST_YEAR}",
+            t.to_rfc3339()
+        ))
+    }
+}
+
+/// The syntax of a webhook URL: http(s), a host, at most 2000 characters.
+/// Where it may point is checked again at each delivery
+/// (`service::webhook`), after name resolution.
+pub fn validate_webhook_url(url: &str) -> Result<(), String> {
+    if url.len() > 2000 {
+        return Err("actuator.url must have at most 2000 characters".into());
+    }
+    if !(url.starts_with("http://") || url.starts_with("https://")) {
+        return Err(format!(
+            "actuator.url must start with http:// or https://, got '{url}'"
+        ));
+    }
+    // the characters of RFC 3986 only (no spaces, no unencoded Unicode)
+    const ALLOWED: &str = "-._~:/?#[]@!$&'()*+,;=%";
+    if let Some(c) = url
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || ALLOWED.contains(*c)))
+    {
+        return Err(format!(
+            "actuator.url holds {c:?}, which a URI does not (percent-encode it)"
+        ));
+    }
+    let parsed = reqwest::Url::parse(url)
+        .map_err(|e| format!("actuator.url = '{url}' is not a URL ({e})"))?;
+    if !matches!(parsed.scheme(), "http" | "https") {
+        return Err(format!("actuator.url must be an http(s) URL, got '{url}'"));
+    }
+    if parsed.host_str().is_none_or(str::is_empty) {
+        return Err(format!("actuator.url = '{url}' has no host"));
+    }
+    if !parsed.username().is_empty() || parsed.password().is_some() {
+        return Err("actuator.url must not carry credentials (the secret signs deliveries)".into());
+    }
+    Ok(())
+}
+
 /// A field as clients create it (`POST /v1/fields`) and read it back.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -60,7 +145,7 @@ impl FieldSpec {
 
 /// A soil: a preset texture name (Carsel & Parrish 1988) or parameters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(untagged, deny_unknown_fields)]
 pub enum SoilSpec {
     Preset(String),
     Parameters {
@@ -87,10 +172,14 @@ impl Default for SoilSpec {
 impl SoilSpec {
     pub fn parameters(&self) -> Result<VanGenuchten, String> {
         match self {
-            SoilSpec::Preset(name) => name
-                .parse::<Texture>()
-                .map(Texture::parameters)
-                .map_err(|e| format!("soil: {e}")),
+            // the API takes the names exactly as written (the CLI is lenient)
+            SoilSpec::Preset(name) => match Texture::ALL.into_iter().find(|t| t.name() == name) {
+                Some(t) => Ok(t.parameters()),
+                None => Err(format!(
+                    "soil: '{name}' is not a texture; one of {}",
+                    Texture::ALL.map(Texture::name).join(", ")
+                )),
+            },
             SoilSpec::Parameters {
                 residual_water_content,
                 saturated_water_content,
@@ -107,9 +196,18 @@ impl SoilSpec {
                     saturated_conductivity: *saturated_conductivity,
                     specific_storage: *specific_storage,
                 };
-                soil.validate()
-                    .map(|()| soil)
-                    .map_err(|e| format!("soil: {e}"))
+                soil.validate().map_err(|e| format!("soil: {e}"))?;
+                for (name, v, most) in [
+                    ("alpha", soil.alpha, 100.0),
+                    ("n", soil.n, 10.0),
+                    ("saturated_conductivity", soil.saturated_conductivity, 1e-2),
+                    ("specific_storage", soil.specific_storage, 1e-2),
+                ] {
+                    if v > most {
+                        return Err(format!("soil.{name} = {v} must be at most {most}"));
+                    }
+                }
+                Ok(soil)
             }
         }
     }
@@ -121,9 +219,10 @@ impl SoilSpec {
     }
 }
 
-/// The crop: coefficient Kc and rooting depth [m] (grass by default).
+/// The crop: coefficient Kc and rooting depth [m] (grass by default; each
+/// key defaults on its own).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct CropSpec {
     pub crop_coefficient: f64,
     pub rooting_depth: f64,
@@ -139,38 +238,127 @@ impl Default for CropSpec {
     }
 }
 
-/// The target zone (MODEL.md §4).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// The target zone (MODEL.md §4), each bound in water content [m³/m³] or in
+/// pressure head [m] (not both). Every key is optional: a missing `low`/`up`
+/// is the soil's default zone ([0.18, 0.23] for sandy loam, else the water
+/// contents of the heads −0.43 … −0.27 m), a missing terminal bound is the
+/// initial one, and μ defaults to 0 (a time-invariant zone).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
 pub struct ZoneSpec {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub low: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub up: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub terminal_low: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub terminal_up: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub low_head: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub up_head: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub terminal_low_head: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub terminal_up_head: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mu: Option<f64>,
+}
+
+/// Range of a zone given in pressure head [m].
+pub const ZONE_HEAD_RANGE: (f64, f64) = (-1000.0, 0.0);
+
+/// A field's zone as the controller uses it, in both forms.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EffectiveZone {
     pub low: f64,
     pub up: f64,
     pub terminal_low: f64,
     pub terminal_up: f64,
     pub mu: f64,
+    pub low_head: f64,
+    pub up_head: f64,
+    pub terminal_low_head: f64,
+    pub terminal_up_head: f64,
 }
 
-impl Default for ZoneSpec {
-    fn default() -> Self {
-        let z = ZoneSettings::default();
+impl ZoneSpec {
+    /// A zone given in water content.
+    pub fn water_content(low: f64, up: f64) -> ZoneSpec {
         ZoneSpec {
+            low: Some(low),
+            up: Some(up),
+            ..ZoneSpec::default()
+        }
+    }
+
+    /// The zone in force on `soil`, or what is wrong with it (naming the key).
+    pub fn resolve(&self, soil: &VanGenuchten) -> Result<ZoneSettings, String> {
+        let default = ZoneSettings::default_for(soil);
+        let (r, s) = (soil.residual_water_content, soil.saturated_water_content);
+        let bound =
+            |name: &str, theta: Option<f64>, head: Option<f64>| -> Result<Option<f64>, String> {
+                match (theta, head) {
+                    (Some(_), Some(_)) => Err(format!(
+                        "zone.{name} and zone.{name}_head are both given: give one form"
+                    )),
+                    (Some(t), None) if t.is_finite() && (r..=s).contains(&t) => Ok(Some(t)),
+                    (Some(t), None) => Err(format!(
+                        "zone.{name} = {t} must lie in [θr, θs] = [{r}, {s}] of the soil"
+                    )),
+                    (None, Some(h))
+                        if h.is_finite()
+                            && (ZONE_HEAD_RANGE.0..=ZONE_HEAD_RANGE.1).contains(&h) =>
+                    {
+                        Ok(Some(soil.water_content(h)))
+                    }
+                    (None, Some(h)) => Err(format!(
+                        "zone.{name}_head = {h} m must lie in [{}, {}] m",
+                        ZONE_HEAD_RANGE.0, ZONE_HEAD_RANGE.1
+                    )),
+                    (None, None) => Ok(None),
+                }
+            };
+        let low = bound("low", self.low, self.low_head)?.unwrap_or(default.low0);
+        let up = bound("up", self.up, self.up_head)?.unwrap_or(default.up0);
+        let y_low =
+            bound("terminal_low", self.terminal_low, self.terminal_low_head)?.unwrap_or(low);
+        let y_up = bound("terminal_up", self.terminal_up, self.terminal_up_head)?.unwrap_or(up);
+        let mu = self.mu.unwrap_or(0.0);
+        if !(mu.is_finite() && (0.0..=10.0).contains(&mu)) {
+            return Err(format!("zone.mu = {mu} must lie in [0, 10]"));
+        }
+        let zone = ZoneSettings {
+            low0: low,
+            up0: up,
+            y_low,
+            y_up,
+            mu,
+        };
+        match zone.problem() {
+            Some(p) => Err(format!("zone: {p}")),
+            None => Ok(zone),
+        }
+    }
+
+    /// Both forms of the zone in force on `soil` (the default zone if the
+    /// spec is not valid there).
+    pub fn effective(&self, soil: &VanGenuchten) -> EffectiveZone {
+        let z = self
+            .resolve(soil)
+            .unwrap_or_else(|_| ZoneSettings::default_for(soil));
+        let head = |theta: f64| soil.pressure_head_at(theta).max(ZONE_HEAD_RANGE.0);
+        EffectiveZone {
             low: z.low0,
             up: z.up0,
             terminal_low: z.y_low,
             terminal_up: z.y_up,
             mu: z.mu,
-        }
-    }
-}
-
-impl ZoneSpec {
-    pub fn settings(&self) -> ZoneSettings {
-        ZoneSettings {
-            low0: self.low,
-            up0: self.up,
-            y_low: self.terminal_low,
-            y_up: self.terminal_up,
-            mu: self.mu,
+            low_head: head(z.low0),
+            up_head: head(z.up0),
+            terminal_low_head: head(z.y_low),
+            terminal_up_head: head(z.y_up),
         }
     }
 }
@@ -194,8 +382,14 @@ pub enum Actuator {
     None,
     /// The built-in simulated field applies them.
     Simulated,
-    /// Each new setpoint is POSTed to `url` (with retries).
-    Webhook { url: String },
+    /// Each new setpoint is POSTed to `url` (with bounded retries), signed
+    /// with HMAC-SHA256 under `secret` (given, or generated at creation and
+    /// returned once in the 201 body; never by a GET).
+    Webhook {
+        url: String,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        secret: Option<String>,
+    },
 }
 
 /// The simulated plant of a field with a simulated actuator.
@@ -217,6 +411,32 @@ pub struct SimulationSpec {
     /// Unset: when the field is created. Before it, the field is silent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub start: Option<DateTime<Utc>>,
+}
+
+impl SimulationSpec {
+    /// What is wrong with the simulation section, naming the key.
+    pub fn validate(&self, control_period_s: f64) -> Result<(), String> {
+        for (name, v) in [
+            ("process_noise", self.process_noise),
+            ("measurement_noise", self.measurement_noise),
+            ("forecast_error", self.forecast_error),
+        ] {
+            if !(v.is_finite() && (0.0..0.5).contains(&v)) {
+                return Err(format!("simulation.{name} = {v} must lie in [0, 0.5)"));
+            }
+        }
+        check_range(
+            "simulation.measurement_interval_s",
+            self.measurement_interval_s,
+            (60.0, control_period_s.max(60.0)),
+        )
+        .map_err(|e| e + " (at most control_period_s)")?;
+        check_range("simulation.initial_head", self.initial_head, INITIAL_HEAD)?;
+        if let Some(start) = self.start {
+            check_time("simulation.start", start)?;
+        }
+        Ok(())
+    }
 }
 
 impl Default for SimulationSpec {
@@ -259,12 +479,19 @@ impl FieldSpec {
         }
     }
 
-    /// What is wrong with the field, if anything (the message names the value).
+    /// What is wrong with the field, if anything (the message names the key
+    /// and its range).
     pub fn validate(&self) -> Result<(), String> {
-        if self.name.trim().is_empty() || self.name.len() > 200 {
-            return Err("name must have 1 to 200 characters".into());
+        let chars = self.name.chars().count();
+        if self.name.trim().is_empty() || chars > MAX_NAME_CHARS {
+            return Err(format!(
+                "name must have 1 to {MAX_NAME_CHARS} characters (not only spaces), got {chars}"
+            ));
         }
-        self.soil.parameters()?;
+        if self.name.chars().any(char::is_control) {
+            return Err("name must not contain control characters".into());
+        }
+        let soil = self.soil.parameters()?;
         if self.model != ModelKind::Richards && !self.soil.is_sandy_loam() {
             return Err(format!(
                 "model '{}' is trained for sandy-loam only; use model 'richards' for another soil",
@@ -272,76 +499,43 @@ impl FieldSpec {
             ));
         }
         let c = self.crop;
-        if !(c.crop_coefficient.is_finite() && c.crop_coefficient >= 0.0) {
-            return Err(format!(
-                "crop.crop_coefficient must be ≥ 0, got {}",
-                c.crop_coefficient
-            ));
-        }
+        check_range(
+            "crop.crop_coefficient",
+            c.crop_coefficient,
+            CROP_COEFFICIENT,
+        )?;
         if !(c.rooting_depth.is_finite() && c.rooting_depth > 0.0 && c.rooting_depth <= 0.5) {
             return Err(format!(
-                "crop.rooting_depth must be in (0, 0.5] m, got {}",
+                "crop.rooting_depth = {} must lie in (0, 0.5] m",
                 c.rooting_depth
             ));
         }
-        let z = self.zone;
-        if [z.low, z.up, z.terminal_low, z.terminal_up]
-            .iter()
-            .any(|v| !(0.0..=1.0).contains(v))
+        self.zone.resolve(&soil)?;
+        if !(self.irrigation_max.is_finite()
+            && self.irrigation_max > 0.0
+            && self.irrigation_max <= IRRIGATION_MAX.1)
         {
-            return Err("zone bounds must lie in [0, 1]".into());
-        }
-        if let Some(problem) = z.settings().problem() {
-            return Err(format!("zone: {problem}"));
-        }
-        if !(self.irrigation_max.is_finite() && self.irrigation_max > 0.0) {
             return Err(format!(
-                "irrigation_max must be > 0 m/s, got {}",
-                self.irrigation_max
+                "irrigation_max = {} must lie in (0, {}] m/s",
+                self.irrigation_max, IRRIGATION_MAX.1
             ));
         }
-        if !(self.control_period_s.is_finite() && self.control_period_s >= 60.0) {
-            return Err(format!(
-                "control_period_s must be ≥ 60, got {}",
-                self.control_period_s
-            ));
-        }
-        let wait = self.measurement_wait_s;
-        if !(wait.is_finite() && wait >= 0.0) {
-            return Err(format!("measurement_wait_s must be ≥ 0, got {wait}"));
-        }
-        if let Actuator::Webhook { url } = &self.actuator
-            && !(url.starts_with("http://") || url.starts_with("https://"))
-        {
-            return Err(format!("actuator.url must be an http(s) URL, got '{url}'"));
+        check_range("control_period_s", self.control_period_s, CONTROL_PERIOD_S)?;
+        check_range(
+            "measurement_wait_s",
+            self.measurement_wait_s,
+            MEASUREMENT_WAIT_S,
+        )?;
+        if let Actuator::Webhook { url, secret } = &self.actuator {
+            validate_webhook_url(url)?;
+            if let Some(secret) = secret
+                && !(16..=200).contains(&secret.chars().count())
+            {
+                return Err("actuator.secret must have 16 to 200 characters".into());
+            }
         }
         match (&self.actuator, &self.simulation) {
-            (Actuator::Simulated, Some(sim)) => {
-                for (name, v) in [
-                    ("process_noise", sim.process_noise),
-                    ("measurement_noise", sim.measurement_noise),
-                    ("forecast_error", sim.forecast_error),
-                ] {
-                    if !(v.is_finite() && (0.0..0.5).contains(&v)) {
-                        return Err(format!("simulation.{name} must be in [0, 0.5), got {v}"));
-                    }
-                }
-                if !(sim.measurement_interval_s.is_finite()
-                    && sim.measurement_interval_s >= 60.0
-                    && sim.measurement_interval_s <= self.control_period_s)
-                {
-                    return Err(format!(
-                        "simulation.measurement_interval_s must be in [60, control_period_s], got {}",
-                        sim.measurement_interval_s
-                    ));
-                }
-                if !(sim.initial_head.is_finite() && sim.initial_head < 0.0) {
-                    return Err(format!(
-                        "simulation.initial_head must be < 0 m, got {}",
-                        sim.initial_head
-                    ));
-                }
-            }
+            (Actuator::Simulated, Some(sim)) => sim.validate(self.control_period_s)?,
             (Actuator::Simulated, None) => {
                 return Err("a simulated actuator needs a 'simulation' section".into());
             }
@@ -358,7 +552,10 @@ impl FieldSpec {
         let soil = self.soil.parameters().unwrap_or(VanGenuchten::SANDY_LOAM);
         MpcSettings {
             u_max: self.irrigation_max,
-            zone: self.zone.settings(),
+            zone: self
+                .zone
+                .resolve(&soil)
+                .unwrap_or_else(|_| ZoneSettings::default_for(&soil)),
             theta_r: soil.residual_water_content,
             theta_s: soil.saturated_water_content,
             ..MpcSettings::default()
@@ -391,6 +588,33 @@ pub struct Field {
     pub created_at: DateTime<Utc>,
     #[serde(flatten)]
     pub spec: FieldSpec,
+}
+
+impl Field {
+    /// The field as the API shows it: the spec as given, with the webhook
+    /// secret removed (and the webhook URL too unless `reveal_url`, for
+    /// requests that carry the token), and the zone in force in both forms.
+    pub fn public(&self, reveal_url: bool) -> serde_json::Value {
+        let mut doc = serde_json::to_value(self).unwrap_or_default();
+        if let Some(actuator) = doc.get_mut("actuator").and_then(|a| a.as_object_mut()) {
+            actuator.remove("secret");
+            if !reveal_url && actuator.remove("url").is_some() {
+                actuator.insert("url_hidden".into(), serde_json::Value::Bool(true));
+            }
+        }
+        let soil = self
+            .spec
+            .soil
+            .parameters()
+            .unwrap_or(VanGenuchten::SANDY_LOAM);
+        if let Some(obj) = doc.as_object_mut() {
+            obj.insert(
+                "effective_zone".into(),
+                serde_json::to_value(self.spec.zone.effective(&soil)).unwrap_or_default(),
+            );
+        }
+        doc
+    }
 }
 
 /// One soil-moisture reading.
@@ -427,11 +651,11 @@ pub struct Forecast {
 }
 
 impl Forecast {
-    /// What is wrong with the forecast, naming the value.
+    /// What is wrong with the forecast, naming the value and its range.
     pub fn validate(&self) -> Result<(), String> {
-        if !(self.step_s.is_finite() && self.step_s >= 60.0) {
-            return Err(format!("step_s must be ≥ 60, got {}", self.step_s));
-        }
+        check_time("issued_at", self.issued_at)?;
+        check_time("start", self.start)?;
+        check_range("step_s", self.step_s, FORECAST_STEP_S)?;
         if self.et0_mm.len() != self.precip_mm.len() {
             return Err(format!(
                 "et0_mm has {} entries but precip_mm has {}: they must be equal",
@@ -439,16 +663,29 @@ impl Forecast {
                 self.precip_mm.len()
             ));
         }
-        if self.et0_mm.is_empty() || self.et0_mm.len() > 10_000 {
-            return Err("a forecast needs 1 to 10000 steps".into());
+        let most = (FORECAST_SPAN_S / self.step_s).floor() as usize;
+        if self.et0_mm.is_empty() || self.et0_mm.len() > most {
+            return Err(format!(
+                "a forecast needs 1 to {most} steps of {} s (30 days), got {}",
+                self.step_s,
+                self.et0_mm.len()
+            ));
         }
-        for (name, values) in [("et0_mm", &self.et0_mm), ("precip_mm", &self.precip_mm)] {
+        let hours = self.step_s / 3600.0;
+        for (name, values, rate) in [
+            ("et0_mm", &self.et0_mm, MAX_ET0_MM_PER_H),
+            ("precip_mm", &self.precip_mm, MAX_PRECIP_MM_PER_H),
+        ] {
+            let most = rate * hours;
             if let Some((i, v)) = values
                 .iter()
                 .enumerate()
-                .find(|(_, v)| !(v.is_finite() && **v >= 0.0))
+                .find(|(_, v)| !(v.is_finite() && (0.0..=most).contains(*v)))
             {
-                return Err(format!("{name}[{i}] = {v}: amounts must be finite and ≥ 0"));
+                return Err(format!(
+                    "{name}[{i}] = {v} must lie in [0, {most}] mm ({rate} mm/h over a step of {} s)",
+                    self.step_s
+                ));
             }
         }
         Ok(())
