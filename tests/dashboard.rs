@@ -131,6 +131,10 @@ seed = 4
     for name in ["east plot (#1)", "west plot (#2)"] {
         assert!(html.contains(name), "{name} missing: {html}");
     }
+    // the zone in both forms, and when the next cycle is due
+    assert!(html.contains("0.180–0.230 (h -0.43…-0.27 m)"), "{html}");
+    assert_eq!(html.matches("class=\"due\"").count(), 2, "{html}");
+    assert!(html.contains(" UTC (in "), "{html}");
     assert_eq!(
         html.matches("data-loaded=\"yes\"").count(),
         2,

@@ -259,10 +259,10 @@ fn the_compose_file_matches_what_the_binary_accepts() {
         .chain(rootzone::fieldsim::ENV_KEYS)
         .map(|k| rootzone::service::settings::env_name(k))
         .collect();
-    let clock = yaml_map(&doc["x-clock"]);
+    let shared = yaml_map(&doc["x-env"]);
     assert!(
-        !clock.is_empty(),
-        "the x-clock anchor holds the shared clock"
+        !shared.is_empty(),
+        "the x-env anchor holds the shared token"
     );
     let services = doc["services"].as_hash().unwrap();
     assert!(services.len() >= 2);
@@ -317,7 +317,7 @@ fn the_compose_file_matches_what_the_binary_accepts() {
         }
         // every variable is one the binary reads
         let env = yaml_map(&service["environment"]);
-        for (k, _) in env.iter().chain(&clock) {
+        for (k, _) in env.iter().chain(&shared) {
             assert!(allowed.contains(k), "{name}: {k} is not read by rootzone");
         }
         // ports: the published port is the one the process listens on, and
@@ -344,23 +344,91 @@ fn the_compose_file_matches_what_the_binary_accepts() {
             );
         }
     }
-    // the field simulator is told where to reach the controller and where
-    // the controller reaches it
-    let field = &doc["services"]["field"];
-    let cmd: Vec<&str> = field["command"]
-        .as_vec()
-        .unwrap()
-        .iter()
-        .filter_map(|v| v.as_str())
-        .collect();
-    let controller_url = cmd[cmd.iter().position(|a| *a == "--controller").unwrap() + 1];
-    assert_eq!(controller_url, "http://controller:8080");
-    let public = yaml_map(&field["environment"])
-        .into_iter()
-        .find(|(k, _)| k == "ROOTZONE_PUBLIC_URL")
-        .unwrap()
-        .1;
-    assert_eq!(public, "http://field:9090");
+    // profiles: every service has one (a plain `up` starts no stray
+    // controller); in each, one controller and one simulator, the host port
+    // published once, its own volumes; the simulator reaches its own
+    // controller and is reached at its own name
+    let dockerfile = std::fs::read_to_string(repo("deploy/Dockerfile")).unwrap();
+    let mut profiles: std::collections::BTreeMap<String, Vec<String>> = Default::default();
+    for (name, service) in services {
+        let name = name.as_str().unwrap().to_string();
+        let p = service["profiles"]
+            .as_vec()
+            .unwrap_or_else(|| panic!("{name} has no profile"));
+        assert_eq!(p.len(), 1, "{name}: one profile");
+        profiles
+            .entry(p[0].as_str().unwrap().to_string())
+            .or_default()
+            .push(name);
+    }
+    let mut volumes_seen = BTreeSet::new();
+    for (profile, names) in &profiles {
+        let of = |sub: &str| -> &str {
+            names
+                .iter()
+                .find(|n| doc["services"][n.as_str()]["command"][0].as_str() == Some(sub))
+                .unwrap_or_else(|| panic!("profile {profile} has no {sub}"))
+        };
+        let (controller, field) = (of("serve"), of("field-sim"));
+        let mut ports = BTreeSet::new();
+        for n in names {
+            let s = &doc["services"][n.as_str()];
+            for p in s["ports"].as_vec().into_iter().flatten() {
+                let host = p.as_str().unwrap().split(':').next().unwrap().to_string();
+                assert!(ports.insert(host), "{profile}: port {p:?} published twice");
+            }
+            for v in s["volumes"].as_vec().into_iter().flatten() {
+                let (volume, target) = v.as_str().unwrap().split_once(':').unwrap();
+                assert!(volumes_seen.insert(volume.to_string()), "{volume} shared");
+                assert!(
+                    !doc["volumes"][volume].is_badvalue(),
+                    "{volume} is not declared"
+                );
+                // the image makes the mount point, owned by its user
+                assert!(
+                    dockerfile.contains(target),
+                    "{n}: {target} not made in the image"
+                );
+                assert!(
+                    dockerfile.contains("chown -R rootzone"),
+                    "mount points not owned"
+                );
+                let dir = yaml_map(&s["environment"])
+                    .into_iter()
+                    .find(|(k, _)| k.ends_with("DATA_DIR"))
+                    .unwrap()
+                    .1;
+                assert_eq!(dir, target, "{n}: data folder is not the volume");
+            }
+        }
+        let cmd: Vec<&str> = doc["services"][field]["command"]
+            .as_vec()
+            .unwrap()
+            .iter()
+            .filter_map(|v| v.as_str())
+            .collect();
+        let url = cmd[cmd.iter().position(|a| *a == "--controller").unwrap() + 1];
+        assert_eq!(url, format!("http://{controller}:8080"));
+        let env = yaml_map(&doc["services"][field]["environment"]);
+        let public = &env
+            .iter()
+            .find(|(k, _)| k == "ROOTZONE_PUBLIC_URL")
+            .unwrap()
+            .1;
+        assert_eq!(public, &format!("http://{field}:9090"));
+        // both sides on one clock
+        let clock = |n: &str| {
+            yaml_map(&doc["services"][n]["environment"])
+                .into_iter()
+                .filter(|(k, _)| k.starts_with("ROOTZONE_CLOCK__"))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(clock(controller), clock(field), "{profile}: clocks differ");
+    }
+    assert_eq!(
+        profiles.keys().cloned().collect::<Vec<_>>(),
+        ["demo", "live"]
+    );
 }
 
 #[test]
@@ -486,5 +554,111 @@ start = "{}"
     assert!(
         (0.18..=0.23).contains(&theta),
         "final θ {theta} outside the zone"
+    );
+}
+
+/// curl POST of a setpoint body to `url` with extra headers; the status.
+fn post_setpoint(url: &str, headers: &[String], body: &str) -> u16 {
+    let mut cmd = Command::new("curl");
+    cmd.args(["-s", "-o", "/dev/null", "-w", "%{http_code}", "-X", "POST"]);
+    cmd.args(["-H", "Content-Type: application/json"]);
+    for h in headers {
+        cmd.args(["-H", h]);
+    }
+    let out = cmd.args(["--data", body, url]).output().unwrap();
+    String::from_utf8_lossy(&out.stdout).parse().unwrap_or(0)
+}
+
+#[test]
+fn the_simulator_refuses_forged_setpoints_and_says_when_its_token_is_rejected() {
+    let pair = Pair::new(1.0);
+    let _controller = pair.controller();
+    let sim_port = free_port();
+    let mut env = pair.clock_env();
+    env.push(("ROOTZONE_SIM_LISTEN", format!("127.0.0.1:{sim_port}")));
+    env.push((
+        "ROOTZONE_SIM_DATA_DIR",
+        pair.dir.path().join("field").display().to_string(),
+    ));
+    let config = repo("config/compose-field.toml").display().to_string();
+    let (_field, line) = spawn(
+        &[
+            "field-sim",
+            "--controller",
+            &pair.base(),
+            "--config",
+            &config,
+        ],
+        &env,
+    );
+    assert!(line.contains("setpoints at"), "{line}");
+    let url = format!("http://127.0.0.1:{sim_port}/fields/compose-field/setpoint");
+    let now = chrono::Utc::now();
+    let body = |rate: f64| {
+        serde_json::json!({
+            "field_id": 1, "time": now, "valid_from": now,
+            "valid_until": now + chrono::TimeDelta::hours(2), "rate": rate,
+            "amount_mm": rate * 7.2e6, "plan": [], "predicted_theta": [], "zone": [],
+            "model": "two-layer", "status": "converged", "iterations": 1,
+            "solve_ms": 1.0, "degraded": [], "bias": 0.0
+        })
+        .to_string()
+    };
+    // no credentials, a made-up signature, a wrong token
+    assert_eq!(post_setpoint(&url, &[], &body(1.0)), 401);
+    let ts = now.timestamp().to_string();
+    let forged = [
+        format!("X-Rootzone-Timestamp: {ts}"),
+        "X-Rootzone-Signature: sha256=00ff".to_string(),
+        "X-Rootzone-Delivery: 5b0c3d0e-0000-4000-8000-000000000000".to_string(),
+    ];
+    assert_eq!(post_setpoint(&url, &forged, &body(1e-6)), 401);
+    let wrong = ["Authorization: Bearer not-the-simulator-token".to_string()];
+    assert_eq!(post_setpoint(&url, &wrong, &body(1e-6)), 403);
+    // the operator's token: a rate beyond the field's irrigation_max is
+    // refused, one within it applied
+    let token = std::fs::read_to_string(pair.dir.path().join("field/sim-token")).unwrap();
+    let operator = [format!("Authorization: Bearer {}", token.trim())];
+    assert_eq!(post_setpoint(&url, &operator, &body(1.0)), 422);
+    assert_eq!(post_setpoint(&url, &operator, &body(1e-6)), 204);
+
+    // a simulator with the wrong controller token says so
+    let mut env = pair.clock_env();
+    env[0].1 = "not-the-controller-token".into();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rootzone"));
+    cmd.args([
+        "field-sim",
+        "--controller",
+        &pair.base(),
+        "--config",
+        &config,
+    ])
+    .env("ROOTZONE_SIM_LISTEN", "127.0.0.1:0")
+    .env(
+        "ROOTZONE_SIM_DATA_DIR",
+        pair.dir.path().join("other").display().to_string(),
+    )
+    .env("RUST_LOG", "warn")
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped());
+    for (k, v) in &env {
+        cmd.env(k, v);
+    }
+    let mut child = Process(cmd.spawn().unwrap());
+    let stderr = child.0.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                return;
+            }
+        }
+    });
+    let said = wait_for(20, "the token message", || {
+        rx.try_iter().find(|l| l.contains("token was rejected"))
+    });
+    assert!(
+        said.contains("ROOTZONE_API_TOKEN") && said.contains("retrying in"),
+        "{said}"
     );
 }

@@ -326,9 +326,9 @@ fn the_data_folder_is_private() {
     assert_eq!(mode(&data.join("rootzone.sqlite3")), 0o600);
 }
 
-/// `rootzone serve` with extra environment; its exit code and stderr, or
-/// None if it kept running (and was stopped) after `wait`.
-fn serve_with(env: &[(&str, &str)], wait: Duration) -> Option<(i32, String)> {
+/// `rootzone serve` with extra environment: its exit code (None if it kept
+/// running for `wait` and was stopped) and its stderr.
+fn serve_with(env: &[(&str, &str)], wait: Duration) -> (Option<i32>, String) {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("rootzone.toml");
     std::fs::write(&file, config("")).unwrap();
@@ -338,6 +338,7 @@ fn serve_with(env: &[(&str, &str)], wait: Duration) -> Option<(i32, String)> {
         .env("ROOTZONE_LISTEN", "127.0.0.1:0")
         .env("ROOTZONE_DATA_DIR", dir.path().join("data"))
         .env("ROOTZONE_API_TOKEN", TOKEN)
+        .env_remove("RUST_LOG")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped());
     for (k, v) in env {
@@ -345,22 +346,26 @@ fn serve_with(env: &[(&str, &str)], wait: Duration) -> Option<(i32, String)> {
     }
     let mut child = cmd.spawn().unwrap();
     let deadline = std::time::Instant::now() + wait;
+    let mut code = None;
     while std::time::Instant::now() < deadline {
         if let Some(status) = child.try_wait().unwrap() {
-            let mut err = String::new();
-            child
-                .stderr
-                .take()
-                .unwrap()
-                .read_to_string(&mut err)
-                .unwrap();
-            return Some((status.code().unwrap_or(-1), err));
+            code = Some(status.code().unwrap_or(-1));
+            break;
         }
         std::thread::sleep(Duration::from_millis(50));
     }
-    let _ = child.kill();
+    if code.is_none() {
+        let _ = child.kill();
+    }
     let _ = child.wait();
-    None
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    (code, err)
 }
 
 #[test]
@@ -378,9 +383,8 @@ fn bad_settings_exit_2_naming_the_key_and_usual_notations_are_accepted() {
         } else {
             &env
         };
-        let (code, err) = serve_with(env, Duration::from_secs(10))
-            .unwrap_or_else(|| panic!("{key}={value} was accepted"));
-        assert_eq!(code, 2, "{key}={value}: {err}");
+        let (code, err) = serve_with(env, Duration::from_secs(10));
+        assert_eq!(code, Some(2), "{key}={value}: {err}");
         let name = key
             .trim_start_matches("ROOTZONE_")
             .replace("__", ".")
@@ -388,14 +392,113 @@ fn bad_settings_exit_2_naming_the_key_and_usual_notations_are_accepted() {
         assert!(err.to_lowercase().contains(&name), "{key}={value}: {err}");
     }
     // a host name and exponent notation, as people write them
-    assert_eq!(
-        serve_with(
-            &[
-                ("ROOTZONE_LISTEN", "localhost:0"),
-                ("ROOTZONE_CLOCK__SPEEDUP", "1e3")
-            ],
-            Duration::from_secs(3)
-        ),
-        None
+    let (code, err) = serve_with(
+        &[
+            ("ROOTZONE_LISTEN", "localhost:0"),
+            ("ROOTZONE_CLOCK__SPEEDUP", "1e3"),
+        ],
+        Duration::from_secs(3),
     );
+    assert_eq!(code, None, "{err}");
+}
+
+#[test]
+fn json_logs_by_a_setting_and_a_warning_beyond_loopback() {
+    let (code, err) = serve_with(
+        &[
+            ("ROOTZONE_LISTEN", "0.0.0.0:0"),
+            ("ROOTZONE_LOG__FORMAT", "json"),
+        ],
+        Duration::from_secs(3),
+    );
+    assert_eq!(code, None, "{err}");
+    let lines: Vec<Value> = err
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
+        .collect();
+    assert!(
+        lines.iter().any(|l| l["level"] == "WARN"
+            && l["fields"]["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("beyond loopback"))),
+        "{err}"
+    );
+}
+
+#[test]
+fn help_shows_the_defaults() {
+    for (sub, needles) in [
+        (
+            "serve",
+            [
+                "127.0.0.1:8080",
+                "ROOTZONE_CLOCK__SPEEDUP",
+                "max_catch_up_s",
+            ],
+        ),
+        (
+            "field-sim",
+            ["127.0.0.1:9090", "ROOTZONE_SIM_TOKEN", "field-data"],
+        ),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_rootzone"))
+            .args([sub, "--help"])
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        for n in needles {
+            assert!(text.contains(n), "{sub} --help lacks {n}: {text}");
+        }
+    }
+}
+
+#[test]
+fn sigterm_stops_webhook_retries_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut d = start(dir.path(), &config(""));
+    // a receiver that fails every delivery (the daemon retries 1, 2, 4 s apart)
+    let receiver = TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}/hook", receiver.local_addr().unwrap());
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for stream in receiver.incoming() {
+            let Ok(mut stream) = stream else { return };
+            let mut buf = [0u8; 4096];
+            let _ = stream.read(&mut buf);
+            let _ = stream.write_all(
+                b"HTTP/1.1 500 Internal Server Error\r\ncontent-length: 0\r\nconnection: close\r\n\r\n",
+            );
+            let _ = tx.send(());
+        }
+    });
+    let r = post(
+        &d,
+        "/v1/fields",
+        &json!({"name": "valve", "actuator": {"kind": "webhook", "url": url}}),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    rx.recv_timeout(Duration::from_secs(10))
+        .expect("a first attempt");
+    let started = std::time::Instant::now();
+    let pid = d.child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    let status = d.child.wait().unwrap();
+    let took = started.elapsed();
+    assert!(status.success(), "{status:?}");
+    // the retries would hold it 7 s; the shutdown grace is 5 s
+    assert!(took < Duration::from_secs(3), "shutdown took {took:?}");
+}
+
+#[test]
+fn the_documented_configuration_files_load() {
+    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    rootzone::service::Settings::load(Some(&repo.join("config/default.toml"))).unwrap();
+    rootzone::fieldsim::FieldSimSettings::load(Some(&repo.join("config/field-sim.toml")), None)
+        .unwrap();
 }

@@ -912,3 +912,63 @@ async fn get_chart(
     .await?;
     Ok(([(header::CONTENT_TYPE, "image/svg+xml")], svg).into_response())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tower::ServiceExt;
+
+    #[tokio::test]
+    async fn a_panicking_handler_gives_a_generic_500_with_the_request_id() {
+        let app = Router::new()
+            .route(
+                "/boom",
+                get(|| async {
+                    if true {
+                        panic!("secret internal detail");
+                    }
+                    "never"
+                }),
+            )
+            .layer(axum::middleware::from_fn(guard));
+        let request = axum::http::Request::builder()
+            .uri("/boom")
+            .header("x-request-id", "req-42")
+            .body(axum::body::Body::empty())
+            .unwrap();
+        let response = app.oneshot(request).await.unwrap();
+        assert_eq!(response.status(), StatusCode::INTERNAL_SERVER_ERROR);
+        assert_eq!(
+            response.headers()[header::CONTENT_TYPE],
+            "application/problem+json"
+        );
+        let body = axum::body::to_bytes(response.into_body(), 1 << 16)
+            .await
+            .unwrap();
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(v["status"], 500);
+        assert_eq!(v["request_id"], "req-42");
+        assert!(!String::from_utf8_lossy(&body).contains("secret"), "{v}");
+    }
+
+    #[test]
+    fn a_merge_patch_follows_rfc_7396() {
+        // RFC 7396 appendix A, a few of its cases
+        let cases = [
+            (r#"{"a":"b"}"#, r#"{"a":"c"}"#, r#"{"a":"c"}"#),
+            (r#"{"a":"b"}"#, r#"{"a":null}"#, r#"{}"#),
+            (r#"{"a":["b"]}"#, r#"{"a":"c"}"#, r#"{"a":"c"}"#),
+            (
+                r#"{"a":"foo"}"#,
+                r#"{"a":{"b":"c","d":null}}"#,
+                r#"{"a":{"b":"c"}}"#,
+            ),
+            (r#"{"e":null}"#, r#"{"a":1}"#, r#"{"e":null,"a":1}"#),
+        ];
+        for (doc, patch, want) in cases {
+            let mut d: serde_json::Value = serde_json::from_str(doc).unwrap();
+            merge(&mut d, serde_json::from_str(patch).unwrap());
+            assert_eq!(d, serde_json::from_str::<serde_json::Value>(want).unwrap());
+        }
+    }
+}
