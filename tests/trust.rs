@@ -502,3 +502,51 @@ fn the_documented_configuration_files_load() {
     rootzone::fieldsim::FieldSimSettings::load(Some(&repo.join("config/field-sim.toml")), None)
         .unwrap();
 }
+
+#[test]
+fn a_plant_started_long_ago_replays_only_the_catch_up_span() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    // 26 years behind the clock: at most 2 days (192 intervals of 900 s)
+    // are simulated, the rest skipped
+    let r = post(
+        &d,
+        "/v1/fields",
+        &json!({"name": "old", "actuator": {"kind": "simulated"},
+                "simulation": {"start": "2000-01-01T00:00:00Z"}}),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let state = json_of(
+        &curl(
+            &d,
+            "GET",
+            &format!("/v1/fields/{id}/simulation"),
+            None,
+            None,
+        )
+        .2,
+    );
+    let steps = state["steps"].as_u64().unwrap();
+    assert!((1..=193).contains(&steps), "{state}");
+    let time = chrono::DateTime::parse_from_rfc3339(state["time"].as_str().unwrap()).unwrap();
+    assert!(
+        (chrono::Utc::now() - time.to_utc()).num_minutes() < 20,
+        "{state}"
+    );
+    let stored = json_of(
+        &curl(
+            &d,
+            "GET",
+            &format!("/v1/fields/{id}/measurements?limit=100000"),
+            None,
+            None,
+        )
+        .2,
+    );
+    assert!(
+        stored.as_array().unwrap().len() <= 194,
+        "{}",
+        stored.as_array().unwrap().len()
+    );
+}

@@ -410,3 +410,28 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod tls_tests {
+    use super::*;
+    use std::io::Read;
+
+    #[tokio::test]
+    async fn https_targets_get_a_tls_handshake() {
+        // a plain TCP server: it sees what the client sends first, then
+        // closes; a client without TLS would not connect at all
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let server = std::thread::spawn(move || {
+            let (mut stream, _) = listener.accept().unwrap();
+            let mut first = [0u8; 1];
+            stream.read_exact(&mut first).unwrap();
+            first[0]
+        });
+        let url = reqwest::Url::parse(&format!("https://127.0.0.1:{port}/hook")).unwrap();
+        let outcome = attempt_once(&url, Some("secret-0123456789"), b"{}", "id", false).await;
+        assert!(matches!(outcome, Err(Refusal::Retry(_))));
+        // 0x16: a TLS handshake record (the ClientHello)
+        assert_eq!(server.join().unwrap(), 0x16);
+    }
+}
