@@ -679,6 +679,13 @@ async fn work_loop(
                         (backoff * 2).clamp(Duration::from_millis(200), Duration::from_secs(10));
                     let wait = backoff.as_secs_f64();
                     match e {
+                        // a rejected token or field does not get better by
+                        // asking again: stop, saying why (exit code 2)
+                        SyncError::Fatal(m) => {
+                            return Err(FieldSimError(format!(
+                                "the controller refused this simulator: {m}"
+                            )));
+                        }
                         SyncError::Refused(m) => tracing::error!(
                             "the controller refused this simulator: {m}; \
                              retrying in {wait:.1} s"
@@ -702,8 +709,10 @@ async fn work_loop(
 
 /// Why a round with the controller failed.
 enum SyncError {
-    /// It answered, and refused (a token, a field spec, a measurement).
+    /// It answered and refused something a retry may get through.
     Refused(String),
+    /// It refused the token or a field: asking again cannot help.
+    Fatal(String),
     /// It did not answer.
     Down(String),
 }
@@ -719,7 +728,7 @@ fn refused(what: &str, status: StatusCode, body: String) -> SyncError {
         .and_then(|v| v["detail"].as_str().map(String::from))
         .unwrap_or(body);
     match status.as_u16() {
-        401 | 403 => SyncError::Refused(format!(
+        401 | 403 => SyncError::Fatal(format!(
             "{what}: HTTP {status}, the API token was rejected ({detail}); set \
              ROOTZONE_API_TOKEN (or api_token) to the controller's token, which it keeps in \
              its data folder's api-token file"
