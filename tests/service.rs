@@ -61,7 +61,7 @@ fn api_stores_controls_and_rejects_bad_input() {
         201
     );
     let batch: Vec<Value> = (1..=12)
-        .map(|k| json!({"time": now_minus(240 * k), "theta": 0.2 + 0.002 * k as f64, "sensor": "tdr-1"}))
+        .map(|k| json!({"time": now_minus(240 * k), "theta": 0.2 + 0.002 * k as f64}))
         .collect();
     let r = curl(
         &d,

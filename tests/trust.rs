@@ -193,7 +193,8 @@ fn errors_are_problem_json_with_a_request_id_and_auth_follows_rfc_9110() {
 fn a_conflicting_resend_is_refused_and_the_stored_value_kept() {
     let dir = tempfile::tempdir().unwrap();
     let d = start(dir.path(), &config(""));
-    let id = json_of(&post(&d, "/v1/fields", &json!({"name": "m"})).2)["id"]
+    let sensors = json!([{"id": "s1", "depth": 0.13}, {"id": "s2", "depth": 0.3}]);
+    let id = json_of(&post(&d, "/v1/fields", &json!({"name": "m", "sensors": sensors})).2)["id"]
         .as_i64()
         .unwrap();
     let path = format!("/v1/fields/{id}/measurements");

@@ -260,6 +260,25 @@ impl SimField {
         std::fs::rename(tmp, path)
     }
 
+    /// Buffers the readings of the field's sensors other than the primary.
+    fn push_others(&mut self) {
+        let sensors = self.spec.effective_sensors();
+        for (id, theta, _) in crate::service::engine::other_readings(
+            &self.plant,
+            &sensors,
+            self.sim.measurement_noise,
+            self.sim.seed,
+        ) {
+            self.buffer.push_back(Measurement {
+                time: self.time,
+                theta,
+                sensor: Some(id),
+                raw: None,
+                true_theta: None,
+            });
+        }
+    }
+
     /// Advances the plant to `now`, buffering a measurement per interval.
     fn advance(
         &mut self,
@@ -284,9 +303,11 @@ impl SimField {
             self.buffer.push_back(Measurement {
                 time: self.time,
                 theta: self.plant.measure().clamp(0.0, 1.0),
-                sensor: Some(format!("field-sim/{}", self.name)),
+                sensor: None,
+                raw: None,
                 true_theta: None,
             });
+            self.push_others();
             stepped = true;
         }
         while self.time + interval <= now {
@@ -301,9 +322,11 @@ impl SimField {
             self.buffer.push_back(Measurement {
                 time: self.time,
                 theta: report.measured_water_content.clamp(0.0, 1.0),
-                sensor: Some(format!("field-sim/{}", self.name)),
+                sensor: None,
+                raw: None,
                 true_theta: None,
             });
+            self.push_others();
             while self.buffer.len() > max_buffer {
                 self.buffer.pop_front();
             }

@@ -528,9 +528,17 @@ async fn delete_field(
 #[serde(deny_unknown_fields)]
 struct RawMeasurement {
     time: String,
-    theta: f64,
+    #[serde(default, deserialize_with = "number")]
+    theta: Option<f64>,
+    #[serde(default, deserialize_with = "number")]
+    raw: Option<f64>,
     #[serde(default)]
     sensor: Option<String>,
+}
+
+/// A number that may be left out but not given as null.
+fn number<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
+    f64::deserialize(d).map(Some)
 }
 
 #[derive(Deserialize)]
@@ -596,6 +604,8 @@ async fn post_measurements(
             ),
         ));
     }
+    let field = load_field(&state, &id).await?;
+    let sensors = field.spec.effective_sensors();
     let now = state.clock.now();
     let skew = TimeDelta::milliseconds((state.settings.limits.max_future_skew_s * 1000.0) as i64);
     let mut parsed = Vec::with_capacity(batch.len());
@@ -609,30 +619,67 @@ async fn post_measurements(
                 now.to_rfc3339()
             )));
         }
-        if !(m.theta.is_finite() && (0.0..=1.0).contains(&m.theta)) {
-            return Err(ApiError::bad(format!(
-                "measurements[{i}].theta = {} must lie in [0, 1]",
-                m.theta
-            )));
-        }
         super::wire::check_time(&format!("measurements[{i}].time"), time).map_err(ApiError::bad)?;
-        if m.sensor
-            .as_ref()
-            .is_some_and(|s| s.chars().count() > super::wire::MAX_NAME_CHARS)
-        {
+        // the sensor: named, or the primary one
+        let (index, sensor) = match &m.sensor {
+            None => (0, &sensors[0]),
+            Some(name) => match sensors.iter().enumerate().find(|(_, s)| &s.id == name) {
+                Some(found) => found,
+                None => {
+                    let known: Vec<&str> = sensors.iter().map(|s| s.id.as_str()).collect();
+                    return Err(ApiError::bad(format!(
+                        "measurements[{i}].sensor '{name}' is not a sensor of field {}; its \
+                         sensors: {}",
+                        field.id,
+                        known.join(", ")
+                    )));
+                }
+            },
+        };
+        let theta = match (m.theta, m.raw) {
+            (Some(_), Some(_)) => {
+                return Err(ApiError::bad(format!(
+                    "measurements[{i}] gives theta and raw: give one (raw is calibrated to θ)"
+                )));
+            }
+            (None, None) => {
+                return Err(ApiError::bad(format!(
+                    "measurements[{i}] needs theta or raw"
+                )));
+            }
+            (Some(theta), None) => theta,
+            (None, Some(raw)) => {
+                super::wire::check_range(
+                    &format!("measurements[{i}].raw"),
+                    raw,
+                    super::wire::RAW_RANGE,
+                )
+                .map_err(ApiError::bad)?;
+                let Some(calibration) = &sensor.calibration else {
+                    return Err(ApiError::bad(format!(
+                        "measurements[{i}].raw: sensor '{}' has no calibration; send theta",
+                        sensor.id
+                    )));
+                };
+                calibration.theta(raw).map_err(|e| {
+                    ApiError::bad(format!("measurements[{i}]: sensor '{}': {e}", sensor.id))
+                })?
+            }
+        };
+        if !(theta.is_finite() && (0.0..=1.0).contains(&theta)) {
             return Err(ApiError::bad(format!(
-                "measurements[{i}].sensor has more than {} characters",
-                super::wire::MAX_NAME_CHARS
+                "measurements[{i}].theta = {theta} must lie in [0, 1]"
             )));
         }
         parsed.push(Measurement {
             time,
-            theta: m.theta,
-            sensor: m.sensor,
+            theta,
+            // the primary sensor's readings are stored without an id
+            sensor: (index > 0).then(|| sensor.id.clone()),
+            raw: m.raw,
             true_theta: None,
         });
     }
-    let field = load_field(&state, &id).await?;
     let engine = state.engine.clone();
     let n = parsed.len();
     let last = parsed.last().map(|m| m.theta);
@@ -700,7 +747,7 @@ async fn get_measurements(
         blocking(move || {
             engine
                 .store
-                .measurements(field.id, from, to, limit)
+                .measurements(field.id, from, to, limit, super::store::Sensors::All)
                 .map_err(ApiError::internal)
         })
         .await?,
@@ -833,23 +880,24 @@ async fn post_control(
         .map_err(ApiError::internal)
 }
 
+/// The true state of a simulated field (`simulated: true` and the state), or
+/// `simulated: false` for a field without a simulated plant.
 async fn get_simulation(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
-) -> ApiResult<Json<super::engine::PlantState>> {
+) -> ApiResult<Json<serde_json::Value>> {
     let field = load_field(&state, &id).await?;
     let engine = state.engine.clone();
     blocking(move || {
-        engine
+        let plant = engine
             .simulation_state(&field)
-            .map_err(ApiError::internal)?
-            .map(Json)
-            .ok_or_else(|| {
-                ApiError::new(
-                    StatusCode::NOT_FOUND,
-                    format!("field {} is not simulated", field.id),
-                )
-            })
+            .map_err(ApiError::internal)?;
+        let mut doc = match plant {
+            Some(p) => serde_json::to_value(p).map_err(ApiError::internal)?,
+            None => serde_json::json!({}),
+        };
+        doc["simulated"] = serde_json::Value::Bool(doc.get("time").is_some());
+        Ok(Json(doc))
     })
     .await
 }
@@ -891,7 +939,13 @@ async fn get_chart(
         let from = super::chart::window(now, hours);
         let store = &engine.store;
         let measurements = store
-            .measurements(field.id, Some(from), Some(now), 100_000)
+            .measurements(
+                field.id,
+                Some(from),
+                Some(now),
+                100_000,
+                super::store::Sensors::Primary,
+            )
             .map_err(ApiError::internal)?;
         let setpoints = store
             .setpoints(field.id, Some(from), None, 100_000)

@@ -103,6 +103,25 @@ pub struct Engine {
     max_catch_up_s: f64,
 }
 
+/// Appends the readings of the other sensors of a simulated plant.
+fn push_others(
+    batch: &mut Vec<super::wire::Measurement>,
+    plant: &Plant,
+    sensors: &[super::wire::SensorSpec],
+    spec: &SimulationSpec,
+    time: DateTime<Utc>,
+) {
+    for (id, theta, truth) in other_readings(plant, sensors, spec.measurement_noise, spec.seed) {
+        batch.push(super::wire::Measurement {
+            time,
+            theta,
+            sensor: Some(id),
+            raw: None,
+            true_theta: Some(truth),
+        });
+    }
+}
+
 /// A failure of the work (not of the input).
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
@@ -156,6 +175,40 @@ impl SimulatedPlant {
             runoff_m: b.runoff,
         }
     }
+}
+
+/// The readings of a simulated plant's sensors other than the primary one
+/// (which is the plant's own reading): (sensor id, measured θ, true θ). Each
+/// reads θ of the cell holding its depth with relative noise U(−m, m),
+/// drawn from a stream of its own fixed by (seed, sensor, step), so a resumed
+/// plant reads the same.
+pub fn other_readings(
+    plant: &Plant,
+    sensors: &[super::wire::SensorSpec],
+    noise: f64,
+    seed: u64,
+) -> Vec<(String, f64, f64)> {
+    use rand::RngExt;
+    let theta = plant.water_contents();
+    let dz = plant.column().cell_thickness();
+    sensors
+        .iter()
+        .enumerate()
+        .skip(1)
+        .map(|(i, s)| {
+            let cell = ((s.depth / dz) as usize).min(theta.len() - 1);
+            let mut rng = ChaCha8Rng::seed_from_u64(
+                seed ^ (0x9e37_79b9_7f4a_7c15_u64.wrapping_mul(i as u64 + 1))
+                    ^ (plant.steps() as u64).rotate_left(32),
+            );
+            let v = noise * (2.0 * rng.random::<f64>() - 1.0);
+            (
+                s.id.clone(),
+                (theta[cell] * (1.0 + v)).clamp(0.0, 1.0),
+                theta[cell],
+            )
+        })
+        .collect()
 }
 
 fn seconds(d: TimeDelta) -> f64 {
@@ -269,6 +322,7 @@ impl Engine {
         };
         let mut p = plant.lock().unwrap_or_else(|e| e.into_inner());
         let interval = TimeDelta::milliseconds((p.spec.measurement_interval_s * 1000.0) as i64);
+        let sensors = field.spec.effective_sensors();
         let mut batch = Vec::new();
         let mut rate = 0.0;
         let mut rate_until = p.time;
@@ -280,9 +334,11 @@ impl Engine {
             batch.push(super::wire::Measurement {
                 time,
                 theta,
-                sensor: Some("simulated".into()),
+                sensor: None,
+                raw: None,
                 true_theta: Some(p.plant.water_content()),
             });
+            push_others(&mut batch, &p.plant, &sensors, &p.spec, time);
         }
         // a bounded replay: a plant far behind the clock skips ahead
         let intervals_behind =
@@ -334,9 +390,12 @@ impl Engine {
             batch.push(super::wire::Measurement {
                 time: p.time,
                 theta: report.measured_water_content.clamp(0.0, 1.0),
-                sensor: Some("simulated".into()),
+                sensor: None,
+                raw: None,
                 true_theta: Some(report.water_content),
             });
+            let time = p.time;
+            push_others(&mut batch, &p.plant, &sensors, &p.spec, time);
         }
         if !batch.is_empty() {
             self.store.add_measurements(field.id, &batch)?;
@@ -531,39 +590,26 @@ impl Engine {
         let solution = match (current, spec.model) {
             (None, _) => None,
             (Some(theta), ModelKind::Richards) => {
-                let mut model = match self.plant(field)? {
-                    Some(plant) => {
-                        let p = plant.lock().unwrap_or_else(|e| e.into_inner());
-                        let mut copy = Plant::new(FieldSettings {
-                            sampling_time: period,
-                            ..*p.plant.settings()
-                        })
-                        .map_err(|e| EngineError::Plant(field.id, e))?;
-                        copy.restore(p.plant.state().clone(), 0.0, 0)
-                            .map_err(|e| EngineError::Plant(field.id, e))?;
-                        RichardsModel::new(&copy, &weather)
-                    }
-                    None => {
-                        // no state estimate: the column in equilibrium with θ
-                        let soil = spec
-                            .soil
-                            .parameters()
-                            .map_err(|e| EngineError::Plant(field.id, e))?;
-                        let head = soil.pressure_head_at(theta.clamp(
-                            soil.residual_water_content + 1e-6,
-                            soil.saturated_water_content - 1e-6,
-                        ));
-                        let plant = Plant::new(FieldSettings {
-                            soil,
-                            crop: spec.crop(),
-                            initial_head: head,
-                            sampling_time: period,
-                            ..FieldSettings::default()
-                        })
-                        .map_err(|e| EngineError::Plant(field.id, e))?;
-                        RichardsModel::new(&plant, &weather)
-                    }
-                };
+                // the controller sees what a real field gives: measurements,
+                // never a simulated plant's true state (the column starts in
+                // equilibrium with the measured θ)
+                let soil = spec
+                    .soil
+                    .parameters()
+                    .map_err(|e| EngineError::Plant(field.id, e))?;
+                let head = soil.pressure_head_at(theta.clamp(
+                    soil.residual_water_content + 1e-6,
+                    soil.saturated_water_content - 1e-6,
+                ));
+                let plant = Plant::new(FieldSettings {
+                    soil,
+                    crop: spec.crop(),
+                    initial_head: head,
+                    sampling_time: period,
+                    ..FieldSettings::default()
+                })
+                .map_err(|e| EngineError::Plant(field.id, e))?;
+                let mut model = RichardsModel::new(&plant, &weather);
                 Some(mpc.solve(&mut model as &mut dyn PredictionModel))
             }
             (Some(theta), kind) => {

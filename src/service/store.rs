@@ -49,6 +49,11 @@ const MIGRATIONS: &[&str] = &[
     "UPDATE fields SET spec = json_set(spec, '$.name', json_extract(spec, '$.name') || ' #' || id)
          WHERE id NOT IN (SELECT MIN(id) FROM fields GROUP BY json_extract(spec, '$.name'));
      CREATE UNIQUE INDEX fields_by_name ON fields(json_extract(spec, '$.name'));",
+    // a sensor's raw reading, when it sent one (θ is then its calibration);
+    // fields had one sensor before: its readings become the primary
+    // sensor's (stored with no id), any that would collide keep their id
+    "ALTER TABLE measurements ADD COLUMN raw REAL;
+     UPDATE OR IGNORE measurements SET sensor = NULL WHERE sensor IS NOT NULL;",
 ];
 
 /// A storage operation failed.
@@ -125,6 +130,25 @@ fn private(dir: &Path, file: &Path) -> std::io::Result<()> {
 #[cfg(not(unix))]
 fn private(_dir: &Path, _file: &Path) -> std::io::Result<()> {
     Ok(())
+}
+
+/// Which sensors' measurements a query returns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sensors {
+    All,
+    /// The field's first sensor (the one the surrogate controllers read),
+    /// stored with no sensor id.
+    Primary,
+}
+
+fn measurement_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Measurement> {
+    Ok(Measurement {
+        time: time(r.get(0)?),
+        theta: r.get(1)?,
+        sensor: r.get(2)?,
+        true_theta: r.get(3)?,
+        raw: r.get(4)?,
+    })
 }
 
 fn millis(t: DateTime<Utc>) -> i64 {
@@ -282,8 +306,8 @@ impl Store {
                      WHERE field_id = ?1 AND time = ?2 AND COALESCE(sensor, '') = COALESCE(?3, '')",
                 )?;
                 let mut insert = tx.prepare_cached(
-                    "INSERT INTO measurements(field_id, time, theta, sensor, true_theta)
-                     VALUES (?1, ?2, ?3, ?4, ?5)",
+                    "INSERT INTO measurements(field_id, time, theta, sensor, true_theta, raw)
+                     VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
                 )?;
                 for (i, m) in batch.iter().enumerate() {
                     let stored: Option<f64> = existing
@@ -306,7 +330,8 @@ impl Store {
                                 millis(m.time),
                                 m.theta,
                                 m.sensor,
-                                m.true_theta
+                                m.true_theta,
+                                m.raw
                             ])?;
                         }
                     }
@@ -317,20 +342,30 @@ impl Store {
         })
     }
 
-    /// Measurements in [from, to], oldest first, at most `limit`.
+    /// Measurements in [from, to], oldest first, at most `limit`; of every
+    /// sensor, or of the primary one only (stored with no sensor id).
     pub fn measurements(
         &self,
         field: i64,
         from: Option<DateTime<Utc>>,
         to: Option<DateTime<Utc>>,
         limit: usize,
+        sensors: Sensors,
     ) -> Result<Vec<Measurement>, StoreError> {
-        self.with(|c| {
-            let mut stmt = c.prepare_cached(
-                "SELECT time, theta, sensor, true_theta FROM measurements
+        let sql = match sensors {
+            Sensors::All => {
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
                  WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
-                 ORDER BY time, rowid LIMIT ?4",
-            )?;
+                 ORDER BY time, rowid LIMIT ?4"
+            }
+            Sensors::Primary => {
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = ?1 AND time >= ?2 AND time <= ?3 AND sensor IS NULL
+                 ORDER BY time, rowid LIMIT ?4"
+            }
+        };
+        self.with(|c| {
+            let mut stmt = c.prepare_cached(sql)?;
             let rows = stmt.query_map(
                 params![
                     field,
@@ -338,20 +373,13 @@ impl Store {
                     to.map_or(i64::MAX, millis),
                     limit as i64
                 ],
-                |r| {
-                    Ok(Measurement {
-                        time: time(r.get(0)?),
-                        theta: r.get(1)?,
-                        sensor: r.get(2)?,
-                        true_theta: r.get(3)?,
-                    })
-                },
+                measurement_row,
             )?;
             Ok(rows.collect::<Result<Vec<_>, _>>()?)
         })
     }
 
-    /// The latest measurement at or before `at`.
+    /// The primary sensor's latest measurement at or before `at`.
     pub fn measurement_before(
         &self,
         field: i64,
@@ -359,17 +387,11 @@ impl Store {
     ) -> Result<Option<Measurement>, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
-                "SELECT time, theta, sensor, true_theta FROM measurements
-                 WHERE field_id = ?1 AND time <= ?2 ORDER BY time DESC, rowid DESC LIMIT 1",
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = ?1 AND time <= ?2 AND sensor IS NULL
+                 ORDER BY time DESC, rowid DESC LIMIT 1",
                 params![field, millis(at)],
-                |r| {
-                    Ok(Measurement {
-                        time: time(r.get(0)?),
-                        theta: r.get(1)?,
-                        sensor: r.get(2)?,
-                        true_theta: r.get(3)?,
-                    })
-                },
+                measurement_row,
             )
             .optional()?)
         })

@@ -119,6 +119,11 @@ pub struct FieldSpec {
     pub measurement_wait_s: f64,
     #[serde(default)]
     pub actuator: Actuator,
+    /// The field's soil-moisture sensors; the first is the primary one (the
+    /// surrogate controllers read it, and measurements that name no sensor
+    /// are its). Empty: one sensor `default` at the rooting depth.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sensors: Vec<SensorSpec>,
     /// The simulated plant (only with `actuator.kind = "simulated"`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simulation: Option<SimulationSpec>,
@@ -363,6 +368,157 @@ impl ZoneSpec {
     }
 }
 
+/// A soil-moisture sensor: where it is, how noisy, and how its raw
+/// reading becomes θ.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorSpec {
+    /// 1 to 64 characters: letters, digits and `-._/`.
+    pub id: String,
+    /// Depth below the surface [m], in (0, 0.5] (the column's depth).
+    pub depth: f64,
+    /// Standard deviation of its θ error [m³/m³], in [0, 0.2].
+    #[serde(default = "default_sensor_noise")]
+    pub noise: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<Calibration>,
+}
+
+fn default_sensor_noise() -> f64 {
+    0.02
+}
+
+/// Range of a raw sensor reading (counts, millivolts, …).
+pub const RAW_RANGE: (f64, f64) = (-1e9, 1e9);
+
+/// How a sensor's raw reading becomes θ. Factory calibrations of capacitive
+/// probes are off by about 5 vol %, soil-specific ones by about 1 %.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum Calibration {
+    /// θ = slope·raw + offset.
+    Linear { slope: f64, offset: f64 },
+    /// Piecewise linear through (raw, θ) points, raw strictly increasing and
+    /// θ strictly monotone; a raw reading outside the table is refused.
+    Table { points: Vec<[f64; 2]> },
+}
+
+impl Calibration {
+    /// What is wrong with it (`name` is its key), if anything.
+    pub fn validate(&self, name: &str) -> Result<(), String> {
+        match self {
+            Calibration::Linear { slope, offset } => {
+                if !(slope.is_finite() && *slope != 0.0 && slope.abs() <= 1e6) {
+                    return Err(format!(
+                        "{name}.slope = {slope} must be finite, non-zero (monotone) and at most 1e6 in size"
+                    ));
+                }
+                check_range(&format!("{name}.offset"), *offset, (-1e6, 1e6))
+            }
+            Calibration::Table { points } => {
+                if !(2..=100).contains(&points.len()) {
+                    return Err(format!(
+                        "{name}.points needs 2 to 100 (raw, θ) points, got {}",
+                        points.len()
+                    ));
+                }
+                for (i, [raw, theta]) in points.iter().enumerate() {
+                    check_range(&format!("{name}.points[{i}] raw"), *raw, RAW_RANGE)?;
+                    check_range(&format!("{name}.points[{i}] θ"), *theta, (0.0, 1.0))?;
+                }
+                let rising = points.windows(2).all(|w| w[1][0] > w[0][0]);
+                if !rising {
+                    return Err(format!(
+                        "{name}.points: raw values must be strictly increasing"
+                    ));
+                }
+                let up = points.windows(2).all(|w| w[1][1] > w[0][1]);
+                let down = points.windows(2).all(|w| w[1][1] < w[0][1]);
+                if !(up || down) {
+                    return Err(format!(
+                        "{name}.points: θ must be strictly monotone in raw (a calibration that \
+                         is not monotone cannot be inverted)"
+                    ));
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// θ of a raw reading, or why there is none.
+    pub fn theta(&self, raw: f64) -> Result<f64, String> {
+        let theta = match self {
+            Calibration::Linear { slope, offset } => slope * raw + offset,
+            Calibration::Table { points } => {
+                let (first, last) = (points[0][0], points[points.len() - 1][0]);
+                if !(first..=last).contains(&raw) {
+                    return Err(format!(
+                        "raw = {raw} lies outside the calibration table [{first}, {last}]"
+                    ));
+                }
+                let i = points
+                    .windows(2)
+                    .position(|w| raw <= w[1][0])
+                    .unwrap_or(points.len() - 2);
+                let ([r0, t0], [r1, t1]) = (points[i], points[i + 1]);
+                t0 + (t1 - t0) * (raw - r0) / (r1 - r0)
+            }
+        };
+        if theta.is_finite() && (0.0..=1.0).contains(&theta) {
+            Ok(theta)
+        } else {
+            Err(format!(
+                "raw = {raw} calibrates to θ = {theta}, outside [0, 1]"
+            ))
+        }
+    }
+}
+
+impl SensorSpec {
+    /// The default sensor of a field: at the rooting depth.
+    pub fn default_at(depth: f64) -> SensorSpec {
+        SensorSpec {
+            id: "default".into(),
+            depth,
+            noise: default_sensor_noise(),
+            calibration: None,
+        }
+    }
+
+    fn validate(&self, i: usize) -> Result<(), String> {
+        let name = format!("sensors[{i}]");
+        let id_ok = (1..=64).contains(&self.id.chars().count())
+            && self
+                .id
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || "-._/".contains(c));
+        if !id_ok {
+            return Err(format!(
+                "{name}.id = '{}' must have 1 to 64 letters, digits or -._/",
+                self.id
+            ));
+        }
+        if !(self.depth.is_finite() && self.depth > 0.0 && self.depth <= COLUMN_DEPTH) {
+            return Err(format!(
+                "{name}.depth = {} m must lie in (0, {COLUMN_DEPTH}] (sensor '{}' would lie \
+                 below the column)",
+                self.depth, self.id
+            ));
+        }
+        check_range(&format!("{name}.noise"), self.noise, (0.0, 0.2))?;
+        if let Some(c) = &self.calibration {
+            c.validate(&format!("{name}.calibration"))?;
+        }
+        Ok(())
+    }
+}
+
+/// Depth of the simulated column [m] (MODEL.md §1).
+pub const COLUMN_DEPTH: f64 = 0.5;
+
+/// Most sensors per field.
+pub const MAX_SENSORS: usize = 16;
+
 /// The prediction model of a field's controller.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -475,6 +631,7 @@ impl FieldSpec {
             control_period_s: default_period(),
             measurement_wait_s: default_measurement_wait(),
             actuator: Actuator::Simulated,
+            sensors: Vec::new(),
             simulation: Some(SimulationSpec::default()),
         }
     }
@@ -534,6 +691,19 @@ impl FieldSpec {
                 return Err("actuator.secret must have 16 to 200 characters".into());
             }
         }
+        if self.sensors.len() > MAX_SENSORS {
+            return Err(format!(
+                "sensors: at most {MAX_SENSORS}, got {}",
+                self.sensors.len()
+            ));
+        }
+        let mut ids = std::collections::HashSet::new();
+        for (i, sensor) in self.sensors.iter().enumerate() {
+            sensor.validate(i)?;
+            if !ids.insert(sensor.id.as_str()) {
+                return Err(format!("sensors[{i}].id '{}' is used twice", sensor.id));
+            }
+        }
         match (&self.actuator, &self.simulation) {
             (Actuator::Simulated, Some(sim)) => sim.validate(self.control_period_s)?,
             (Actuator::Simulated, None) => {
@@ -559,6 +729,16 @@ impl FieldSpec {
             theta_r: soil.residual_water_content,
             theta_s: soil.saturated_water_content,
             ..MpcSettings::default()
+        }
+    }
+
+    /// The sensors in force: those given, or the default one at the rooting
+    /// depth. The first is the primary sensor.
+    pub fn effective_sensors(&self) -> Vec<SensorSpec> {
+        if self.sensors.is_empty() {
+            vec![SensorSpec::default_at(self.crop.rooting_depth)]
+        } else {
+            self.sensors.clone()
         }
     }
 
@@ -624,8 +804,12 @@ pub struct Measurement {
     pub time: DateTime<Utc>,
     /// Volumetric water content [m³/m³].
     pub theta: f64,
+    /// The sensor; none for the field's primary (first) sensor.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor: Option<String>,
+    /// The raw reading the θ was calibrated from, if the sensor sent one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw: Option<f64>,
     /// The noise-free θ, for the built-in simulated fields only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub true_theta: Option<f64>,

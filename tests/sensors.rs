@@ -1,0 +1,138 @@
+//! Several sensors per field (issue 16, part 1): declared with depth, noise
+//! and calibration, named by measurements, read by simulated plants at their
+//! depths; the single-sensor API keeps working with the primary sensor.
+
+mod common;
+use common::*;
+
+use serde_json::{Value, json};
+
+fn post(d: &Daemon, path: &str, body: &Value) -> (u16, String, String) {
+    curl(d, "POST", path, Some(&body.to_string()), Some(TOKEN))
+}
+
+#[test]
+fn measurements_name_their_sensor_and_raw_readings_are_calibrated() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    let sensors = json!([
+        {"id": "s10", "depth": 0.10},
+        {"id": "s30", "depth": 0.30, "noise": 0.01,
+         "calibration": {"kind": "linear", "slope": 0.001, "offset": -0.1}},
+        {"id": "s45", "depth": 0.45,
+         "calibration": {"kind": "table", "points": [[100, 0.05], [300, 0.25], [500, 0.40]]}}
+    ]);
+    let r = post(&d, "/v1/fields", &json!({"name": "f", "sensors": sensors}));
+    assert_eq!(r.0, 201, "{}", r.2);
+    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let path = format!("/v1/fields/{id}/measurements");
+    let t = now_minus(10);
+    let batch = json!([
+        {"time": t, "theta": 0.21},                     // the primary sensor, s10
+        {"time": t, "raw": 350.0, "sensor": "s30"},     // 0.001·350 − 0.1 = 0.25
+        {"time": t, "raw": 400.0, "sensor": "s45"}      // halfway 0.25 … 0.40
+    ]);
+    let r = post(&d, &path, &batch);
+    assert_eq!(r.0, 201, "{}", r.2);
+    assert_eq!(json_of(&r.2)["stored"], 3);
+    let stored = json_of(&curl(&d, "GET", &path, None, None).2);
+    let of = |sensor: Option<&str>| {
+        stored
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|m| m["sensor"].as_str() == sensor)
+            .cloned()
+            .unwrap_or_else(|| panic!("{sensor:?} in {stored}"))
+    };
+    assert_eq!(of(None)["theta"], 0.21);
+    assert!((of(Some("s30"))["theta"].as_f64().unwrap() - 0.25).abs() < 1e-12);
+    assert_eq!(of(Some("s30"))["raw"], 350.0);
+    assert!((of(Some("s45"))["theta"].as_f64().unwrap() - 0.325).abs() < 1e-12);
+
+    // bad input, each naming what is wrong
+    for (body, needle) in [
+        (json!({"time": t, "theta": 0.2, "sensor": "nope"}), "nope"),
+        (json!({"time": t, "raw": 350.0}), "no calibration"),
+        (
+            json!({"time": t, "raw": 900.0, "sensor": "s45"}),
+            "outside the calibration",
+        ),
+        (
+            json!({"time": t, "raw": 350.0, "theta": 0.2, "sensor": "s30"}),
+            "give one",
+        ),
+        (json!({"time": t, "sensor": "s30"}), "theta or raw"),
+    ] {
+        problem(post(&d, &path, &body), 422, needle);
+    }
+    for (sensors, needle) in [
+        (json!([{"id": "deep", "depth": 0.8}]), "below the column"),
+        (
+            json!([{"id": "a", "depth": 0.1}, {"id": "a", "depth": 0.2}]),
+            "twice",
+        ),
+        (
+            json!([{"id": "t", "depth": 0.1, "calibration": {"kind": "table",
+                "points": [[100, 0.05], [300, 0.30], [500, 0.20]]}}]),
+            "monotone",
+        ),
+        (
+            json!([{"id": "l", "depth": 0.1, "calibration": {"kind": "linear",
+                "slope": 0.0, "offset": 0.1}}]),
+            "monotone",
+        ),
+    ] {
+        problem(
+            post(
+                &d,
+                "/v1/fields",
+                &json!({"name": "bad", "sensors": sensors}),
+            ),
+            422,
+            needle,
+        );
+    }
+}
+
+#[test]
+fn a_simulated_plant_reads_every_sensor_at_its_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    let r = post(
+        &d,
+        "/v1/fields",
+        &json!({"name": "sim", "actuator": {"kind": "simulated"},
+                "simulation": {"initial_head": -0.5, "measurement_noise": 0.0},
+                "sensors": [{"id": "root", "depth": 0.13}, {"id": "deep", "depth": 0.40}]}),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let stored = json_of(
+        &curl(
+            &d,
+            "GET",
+            &format!("/v1/fields/{id}/measurements"),
+            None,
+            None,
+        )
+        .2,
+    );
+    let all = stored.as_array().unwrap();
+    // the first reading of both sensors, at the start: a uniform head, so
+    // both read θ(−0.5 m) of sandy loam (Carsel & Parrish: θr 0.065, θs 0.41,
+    // α 7.5 1/m, n 1.89), without noise
+    let expected = {
+        let (r, s, a, n) = (0.065, 0.41, 7.5_f64, 1.89_f64);
+        r + (s - r) * (1.0 + (a * 0.5).powf(n)).powf(-(1.0 - 1.0 / n))
+    };
+    let primary: Vec<&Value> = all.iter().filter(|m| m["sensor"].is_null()).collect();
+    let deep: Vec<&Value> = all.iter().filter(|m| m["sensor"] == "deep").collect();
+    assert!(!primary.is_empty() && !deep.is_empty(), "{stored}");
+    for m in [primary[0], deep[0]] {
+        assert!(
+            (m["theta"].as_f64().unwrap() - expected).abs() < 1e-9,
+            "{m}"
+        );
+    }
+}
