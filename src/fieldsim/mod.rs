@@ -25,13 +25,12 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::service::clock::{Clock, next_boundary};
-use crate::service::engine::{midnight, scenario_forecast, scenario_weather};
 use crate::service::settings::ClockSettings;
 use crate::service::webhook::{
     DELIVERY_HEADER, ReplayGuard, SIGNATURE_HEADER, TIMESTAMP_HEADER, verify,
 };
 use crate::service::wire::{Actuator, FieldSpec, Measurement, Setpoint, SimulationSpec};
-use crate::soil::{ColumnState, Field as Plant, FieldSettings};
+use crate::sim::{PlantState, SimulatedPlant, midnight, scenario_forecast};
 
 /// The keys the environment may set (see [`crate::service::settings::env_name`]).
 pub const ENV_KEYS: &[&str] = &[
@@ -197,16 +196,12 @@ struct SimField {
     sim: SimulationSpec,
     /// The controller's id, once registered.
     id: Option<i64>,
-    plant: Plant,
-    time: DateTime<Utc>,
-    day_zero: DateTime<Utc>,
+    plant: SimulatedPlant,
     /// Measurements not yet acknowledged by the controller.
     buffer: VecDeque<Measurement>,
     /// The latest setpoint received: (rate, valid from, valid until).
     setpoint: Option<(f64, DateTime<Utc>, DateTime<Utc>)>,
     last_forecast: Option<DateTime<Utc>>,
-    /// Whether the reading of the initial state has been taken.
-    started: bool,
 }
 
 /// Stored per field: plant and buffer.
@@ -223,6 +218,10 @@ struct Saved {
     /// measurement per time and sensor).
     #[serde(default)]
     started: bool,
+    /// The scenario's day zero (files of older versions: the midnight
+    /// before `time`).
+    #[serde(default)]
+    day_zero: Option<DateTime<Utc>>,
 }
 
 struct Shared {
@@ -245,14 +244,16 @@ fn saved_path(dir: &Path, name: &str) -> PathBuf {
 
 impl SimField {
     fn save(&self, dir: &Path) -> std::io::Result<()> {
+        let state = self.plant.state();
         let saved = Saved {
-            time: self.time,
-            steps: self.plant.steps(),
-            heads: self.plant.pressure_heads().to_vec(),
-            amounts: self.plant.state().amounts,
+            time: state.time,
+            steps: state.steps,
+            heads: state.heads,
+            amounts: state.amounts,
             buffer: self.buffer.iter().cloned().collect(),
             setpoint: self.setpoint,
-            started: self.started,
+            started: self.plant.started(),
+            day_zero: Some(self.plant.day_zero()),
         };
         let path = saved_path(dir, &self.name);
         let tmp = path.with_extension("tmp");
@@ -260,79 +261,41 @@ impl SimField {
         std::fs::rename(tmp, path)
     }
 
-    /// Buffers the readings of the field's sensors other than the primary.
-    fn push_others(&mut self) {
-        let sensors = self.spec.effective_sensors();
-        for (id, theta, _) in crate::service::engine::other_readings(
-            &self.plant,
-            &sensors,
-            self.sim.measurement_noise,
-            self.sim.seed,
-        ) {
-            self.buffer.push_back(Measurement {
-                time: self.time,
-                theta,
-                sensor: Some(id),
-                raw: None,
-                true_theta: None,
-            });
-        }
-    }
-
-    /// Advances the plant to `now`, buffering a measurement per interval.
+    /// Advances the plant to `now`, buffering every sensor's reading per
+    /// interval (the true θ is not sent: the controller sees what a real
+    /// field gives).
     fn advance(
         &mut self,
         now: DateTime<Utc>,
         max_buffer: usize,
         max_catch_up_s: f64,
     ) -> Result<bool, String> {
-        let interval = TimeDelta::milliseconds((self.sim.measurement_interval_s * 1000.0) as i64);
-        let mut stepped = false;
-        let step = self.sim.measurement_interval_s;
-        let behind = (now - self.time).num_milliseconds() as f64 / 1e3 / step;
-        let most = (max_catch_up_s / step).floor();
-        if behind > most + 1.0 {
-            let from = self.time;
-            self.time += TimeDelta::milliseconds(((behind - most).floor() * step * 1e3) as i64);
-            tracing::warn!(field = %self.name, from = %from, to = %self.time,
+        let setpoint = self.setpoint;
+        let advance = self.plant.advance(now, max_catch_up_s, |t| {
+            Ok::<_, String>(match setpoint {
+                Some((rate, from, until)) if from <= t && t < until => (rate, until),
+                Some((_, from, _)) if t < from => (0.0, from),
+                _ => (0.0, t),
+            })
+        })?;
+        if let Some((from, to)) = advance.skipped {
+            tracing::warn!(field = %self.name, from = %from, to = %to,
                 "plant far behind the clock: skipped to replay at most {max_catch_up_s} s (max_catch_up_s)");
         }
-        if !self.started && self.time <= now {
-            // the sensor reads the initial state at the start
-            self.started = true;
+        let stepped = !advance.readings.is_empty();
+        for m in advance.readings {
             self.buffer.push_back(Measurement {
-                time: self.time,
-                theta: self.plant.measure().clamp(0.0, 1.0),
-                sensor: None,
-                raw: None,
                 true_theta: None,
+                ..m
             });
-            self.push_others();
-            stepped = true;
         }
-        while self.time + interval <= now {
-            let rate = match self.setpoint {
-                Some((rate, from, until)) if from <= self.time && self.time < until => rate,
-                _ => 0.0,
-            };
-            let forcing =
-                scenario_weather(self.sim.scenario, self.day_zero, self.time).forcing(rate, 7200.0);
-            let report = self.plant.step(forcing).map_err(|e| e.to_string())?;
-            self.time += interval;
-            self.buffer.push_back(Measurement {
-                time: self.time,
-                theta: report.measured_water_content.clamp(0.0, 1.0),
-                sensor: None,
-                raw: None,
-                true_theta: None,
-            });
-            self.push_others();
-            while self.buffer.len() > max_buffer {
-                self.buffer.pop_front();
-            }
-            stepped = true;
+        while self.buffer.len() > max_buffer {
+            self.buffer.pop_front();
         }
-        Ok(stepped)
+        match advance.failure {
+            Some(e) => Err(e.to_string()),
+            None => Ok(stepped),
+        }
     }
 }
 
@@ -369,43 +332,37 @@ pub async fn run(
     let mut fields = Vec::new();
     for spec in &settings.fields {
         let sim = spec.simulation.unwrap_or_default();
-        let soil = spec.soil.parameters().map_err(FieldSimError)?;
-        let mut plant = Plant::new(FieldSettings {
-            soil,
-            crop: spec.crop(),
-            initial_head: sim.initial_head,
-            sampling_time: sim.measurement_interval_s,
-            process_noise: sim.process_noise,
-            measurement_noise: sim.measurement_noise,
-            seed: sim.seed,
-            ..FieldSettings::default()
-        })
-        .map_err(FieldSimError)?;
         let now = clock.now();
-        let mut time = sim.start.unwrap_or_else(|| {
+        let start = sim.start.unwrap_or_else(|| {
             crate::service::clock::boundary_at_or_before(now, sim.measurement_interval_s)
         });
         let mut buffer = VecDeque::new();
         let mut setpoint = None;
-        let mut started = false;
-        if let Ok(text) = std::fs::read_to_string(saved_path(&settings.sim_data_dir, &spec.name))
-            && let Ok(saved) = serde_json::from_str::<Saved>(&text)
-        {
-            plant
-                .restore(
-                    ColumnState {
-                        heads: saved.heads,
-                        amounts: saved.amounts,
-                    },
-                    saved.steps as f64 * sim.measurement_interval_s,
-                    saved.steps,
-                )
-                .map_err(FieldSimError)?;
-            time = saved.time;
-            buffer = saved.buffer.into();
-            setpoint = saved.setpoint;
-            started = saved.started;
-        }
+        let saved = std::fs::read_to_string(saved_path(&settings.sim_data_dir, &spec.name))
+            .ok()
+            .and_then(|text| serde_json::from_str::<Saved>(&text).ok());
+        let plant = match saved {
+            Some(saved) => {
+                let state = PlantState {
+                    time: saved.time,
+                    steps: saved.steps,
+                    heads: saved.heads,
+                    amounts: saved.amounts,
+                    theta: 0.0,
+                    infiltration_m: 0.0,
+                    drainage_m: 0.0,
+                    uptake_m: 0.0,
+                    runoff_m: 0.0,
+                };
+                buffer = saved.buffer.into();
+                setpoint = saved.setpoint;
+                let day_zero = saved.day_zero.unwrap_or_else(|| midnight(saved.time));
+                SimulatedPlant::new(spec, sim, start, Some(&state))
+                    .map_err(FieldSimError)?
+                    .resume_at(day_zero, saved.started)
+            }
+            None => SimulatedPlant::new(spec, sim, start, None).map_err(FieldSimError)?,
+        };
         fields.push(SimField {
             name: spec.name.clone(),
             spec: FieldSpec {
@@ -419,12 +376,9 @@ pub async fn run(
             sim,
             id: None,
             plant,
-            time,
-            day_zero: midnight(time),
             buffer,
             setpoint,
             last_forecast: None,
-            started,
         });
     }
     let shared = Arc::new(Shared {
@@ -839,7 +793,7 @@ async fn sync_with_controller(
                 let start = crate::service::clock::boundary_at_or_before(now, period);
                 scenario_forecast(
                     f.sim.scenario,
-                    f.day_zero,
+                    f.plant.day_zero(),
                     start,
                     period,
                     24,

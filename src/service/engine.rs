@@ -7,89 +7,25 @@ use std::sync::{Arc, Mutex};
 use chrono::{DateTime, TimeDelta, Timelike, Utc};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 
 use crate::control::{PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc};
-use crate::soil::{ColumnState, Field as Plant, FieldSettings};
+use crate::sim::{
+    PlantState, SCENARIO_STEP, SimulatedPlant, scenario_forecast, scenario_series, scenario_weather,
+};
+use crate::soil::{Field as Plant, FieldSettings};
 use crate::surrogate::ModelFile;
 use crate::surrogate::evaluate::WINDOW;
-use crate::weather::{
-    DRY_SCENARIO, RAIN_SCENARIO, WeatherSeries, WeatherStep, mm_to_rate, rate_to_mm,
-};
+use crate::weather::{WeatherStep, mm_to_rate, rate_to_mm};
 
 use super::store::{Store, StoreError};
-use super::wire::{Actuator, Field, Forecast, ModelKind, Scenario, Setpoint, SimulationSpec};
+use super::wire::{Actuator, Field, Forecast, ModelKind, Scenario, Setpoint};
 
 /// How many past setpoints enter the bias (MODEL.md: f = 2).
 const BIAS_PERIOD: usize = 2;
-/// Scenario step [s].
-const SCENARIO_STEP: f64 = 7200.0;
-
 /// The surrogates, loaded once.
 pub struct Models {
     pub two_layer: ModelFile,
     pub lstm: ModelFile,
-}
-
-static DRY: std::sync::LazyLock<WeatherSeries> = std::sync::LazyLock::new(|| {
-    WeatherSeries::parse(DRY_SCENARIO, "embedded weather-dry.csv").expect("embedded scenario")
-});
-static RAIN: std::sync::LazyLock<WeatherSeries> = std::sync::LazyLock::new(|| {
-    WeatherSeries::parse(RAIN_SCENARIO, "embedded weather-rain.csv").expect("embedded scenario")
-});
-
-/// The scenario's weather (amounts per 2-h step) at clock time `t`, the
-/// scenario's hour 0 being `day_zero` and the scenario repeating.
-pub fn scenario_weather(s: Scenario, day_zero: DateTime<Utc>, t: DateTime<Utc>) -> WeatherStep {
-    let series: &WeatherSeries = match s {
-        Scenario::Dry => &DRY,
-        Scenario::Rain => &RAIN,
-    };
-    let k = (seconds(t - day_zero) / SCENARIO_STEP).floor().max(0.0) as usize;
-    series.steps()[k % series.len()]
-}
-
-/// Midnight (UTC) of the day of `t`.
-pub fn midnight(t: DateTime<Utc>) -> DateTime<Utc> {
-    t.with_hour(0)
-        .and_then(|t| t.with_minute(0))
-        .and_then(|t| t.with_second(0))
-        .and_then(|t| t.with_nanosecond(0))
-        .unwrap_or(t)
-}
-
-/// A scenario forecast from `now`: `steps` steps of `period` seconds, each
-/// ET0 and P the truth × (1 + U(−error, error)) (MODEL.md §2).
-pub fn scenario_forecast(
-    s: Scenario,
-    day_zero: DateTime<Utc>,
-    now: DateTime<Utc>,
-    period: f64,
-    steps: usize,
-    error: f64,
-    rng: &mut impl rand::Rng,
-) -> Forecast {
-    let mut et0 = Vec::with_capacity(steps);
-    let mut precip = Vec::with_capacity(steps);
-    for k in 0..steps {
-        let t = now + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64);
-        let w = scenario_weather(s, day_zero, t);
-        let truth = WeatherSeries::new(vec![WeatherStep {
-            et0_mm: w.et0_mm * period / SCENARIO_STEP,
-            precip_mm: w.precip_mm * period / SCENARIO_STEP,
-            ..w
-        }]);
-        let f = truth.forecast(0, 1, error, rng)[0];
-        et0.push(f.et0_mm);
-        precip.push(f.precip_mm);
-    }
-    Forecast {
-        issued_at: now,
-        start: now,
-        step_s: period,
-        et0_mm: et0,
-        precip_mm: precip,
-    }
 }
 
 /// Shared state of the work: storage, models, the simulated plants.
@@ -103,25 +39,6 @@ pub struct Engine {
     max_catch_up_s: f64,
 }
 
-/// Appends the readings of the other sensors of a simulated plant.
-fn push_others(
-    batch: &mut Vec<super::wire::Measurement>,
-    plant: &Plant,
-    sensors: &[super::wire::SensorSpec],
-    spec: &SimulationSpec,
-    time: DateTime<Utc>,
-) {
-    for (id, theta, truth) in other_readings(plant, sensors, spec.measurement_noise, spec.seed) {
-        batch.push(super::wire::Measurement {
-            time,
-            theta,
-            sensor: Some(id),
-            raw: None,
-            true_theta: Some(truth),
-        });
-    }
-}
-
 /// A failure of the work (not of the input).
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
@@ -129,86 +46,6 @@ pub enum EngineError {
     Store(#[from] StoreError),
     #[error("simulated field {0}: {1}")]
     Plant(i64, String),
-}
-
-/// The stored state of a simulated plant.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct PlantState {
-    /// Clock time of the state.
-    pub time: DateTime<Utc>,
-    /// Completed measurement intervals.
-    pub steps: usize,
-    pub heads: Vec<f64>,
-    pub amounts: [f64; 4],
-    /// True θ at the sensor.
-    pub theta: f64,
-    /// Water balance [m]: infiltration, drainage, uptake, runoff.
-    pub infiltration_m: f64,
-    pub drainage_m: f64,
-    pub uptake_m: f64,
-    pub runoff_m: f64,
-}
-
-/// A simulated field: the Richards plant and when it is.
-pub struct SimulatedPlant {
-    plant: Plant,
-    time: DateTime<Utc>,
-    /// Midnight (UTC) of the field's first day: the scenario's hour 0.
-    day_zero: DateTime<Utc>,
-    spec: SimulationSpec,
-    /// Whether the reading of the initial state has been stored.
-    started: bool,
-}
-
-impl SimulatedPlant {
-    pub fn state(&self) -> PlantState {
-        let b = self.plant.water_balance();
-        PlantState {
-            time: self.time,
-            steps: self.plant.steps(),
-            heads: self.plant.pressure_heads().to_vec(),
-            amounts: self.plant.state().amounts,
-            theta: self.plant.water_content(),
-            infiltration_m: b.infiltration,
-            drainage_m: b.drainage,
-            uptake_m: b.uptake,
-            runoff_m: b.runoff,
-        }
-    }
-}
-
-/// The readings of a simulated plant's sensors other than the primary one
-/// (which is the plant's own reading): (sensor id, measured θ, true θ). Each
-/// reads θ of the cell holding its depth with relative noise U(−m, m),
-/// drawn from a stream of its own fixed by (seed, sensor, step), so a resumed
-/// plant reads the same.
-pub fn other_readings(
-    plant: &Plant,
-    sensors: &[super::wire::SensorSpec],
-    noise: f64,
-    seed: u64,
-) -> Vec<(String, f64, f64)> {
-    use rand::RngExt;
-    let theta = plant.water_contents();
-    let dz = plant.column().cell_thickness();
-    sensors
-        .iter()
-        .enumerate()
-        .skip(1)
-        .map(|(i, s)| {
-            let cell = ((s.depth / dz) as usize).min(theta.len() - 1);
-            let mut rng = ChaCha8Rng::seed_from_u64(
-                seed ^ (0x9e37_79b9_7f4a_7c15_u64.wrapping_mul(i as u64 + 1))
-                    ^ (plant.steps() as u64).rotate_left(32),
-            );
-            let v = noise * (2.0 * rng.random::<f64>() - 1.0);
-            (
-                s.id.clone(),
-                (theta[cell] * (1.0 + v)).clamp(0.0, 1.0),
-                theta[cell],
-            )
-        })
-        .collect()
 }
 
 fn seconds(d: TimeDelta) -> f64 {
@@ -233,16 +70,12 @@ impl Engine {
         self
     }
 
-    fn weather_at(&self, s: Scenario, day_zero: DateTime<Utc>, t: DateTime<Utc>) -> WeatherStep {
-        scenario_weather(s, day_zero, t)
-    }
-
     /// The climatological forecast: the dry scenario's daily ET0 cycle by
     /// hour of day, no rain; amounts per step of `period` seconds.
     fn climatology(&self, t: DateTime<Utc>, period: f64) -> WeatherStep {
         let hour = t.hour() as f64 + t.minute() as f64 / 60.0;
         let k = ((hour * 3600.0) / SCENARIO_STEP).floor() as usize % 12;
-        let step = DRY.steps()[k];
+        let step = scenario_series(Scenario::Dry).steps()[k];
         WeatherStep {
             start_hour: hour,
             et0_mm: step.et0_mm * period / SCENARIO_STEP,
@@ -260,46 +93,18 @@ impl Engine {
         if let Some(p) = plants.get(&field.id) {
             return Ok(Some(p.clone()));
         }
-        let settings = FieldSettings {
-            soil: field
-                .spec
-                .soil
-                .parameters()
-                .map_err(|e| EngineError::Plant(field.id, e))?,
-            crop: field.spec.crop(),
-            initial_head: spec.initial_head,
-            sampling_time: spec.measurement_interval_s,
-            process_noise: spec.process_noise,
-            measurement_noise: spec.measurement_noise,
-            seed: spec.seed,
-            ..FieldSettings::default()
+        let saved: Option<PlantState> = match self.store.simulation(field.id)? {
+            Some(body) => Some(serde_json::from_str(&body).map_err(StoreError::from)?),
+            None => None,
         };
-        let mut plant = Plant::new(settings).map_err(|e| EngineError::Plant(field.id, e))?;
-        let mut time = spec.start.unwrap_or(field.created_at);
-        let day_zero = midnight(time);
-        let mut started = false;
-        if let Some(body) = self.store.simulation(field.id)? {
-            let state: PlantState = serde_json::from_str(&body).map_err(StoreError::from)?;
-            plant
-                .restore(
-                    ColumnState {
-                        heads: state.heads,
-                        amounts: state.amounts,
-                    },
-                    state.steps as f64 * spec.measurement_interval_s,
-                    state.steps,
-                )
-                .map_err(|e| EngineError::Plant(field.id, e))?;
-            time = state.time;
-            started = true;
-        }
-        let p = Arc::new(Mutex::new(SimulatedPlant {
-            plant,
-            time,
-            day_zero,
+        let plant = SimulatedPlant::new(
+            &field.spec,
             spec,
-            started,
-        }));
+            spec.start.unwrap_or(field.created_at),
+            saved.as_ref(),
+        )
+        .map_err(|e| EngineError::Plant(field.id, e))?;
+        let p = Arc::new(Mutex::new(plant));
         plants.insert(field.id, p.clone());
         Ok(Some(p))
     }
@@ -321,82 +126,26 @@ impl Engine {
             return Ok(0);
         };
         let mut p = plant.lock().unwrap_or_else(|e| e.into_inner());
-        let interval = TimeDelta::milliseconds((p.spec.measurement_interval_s * 1000.0) as i64);
-        let sensors = field.spec.effective_sensors();
-        let mut batch = Vec::new();
-        let mut rate = 0.0;
-        let mut rate_until = p.time;
-        if !p.started && p.time <= now {
-            // the sensor reads the initial state at the start
-            p.started = true;
-            let time = p.time;
-            let theta = p.plant.measure().clamp(0.0, 1.0);
-            batch.push(super::wire::Measurement {
-                time,
-                theta,
-                sensor: None,
-                raw: None,
-                true_theta: Some(p.plant.water_content()),
-            });
-            push_others(&mut batch, &p.plant, &sensors, &p.spec, time);
-        }
-        // a bounded replay: a plant far behind the clock skips ahead
-        let intervals_behind =
-            (now - p.time).num_milliseconds() as f64 / 1e3 / p.spec.measurement_interval_s;
-        let most = (self.max_catch_up_s / p.spec.measurement_interval_s).floor();
-        if intervals_behind > most + 1.0 {
-            let skip = (intervals_behind - most).floor();
-            let from = p.time;
-            let step = p.spec.measurement_interval_s;
-            p.time += TimeDelta::milliseconds((skip * step * 1e3) as i64);
+        let store = &self.store;
+        let advance = p.advance(now, self.max_catch_up_s, |t| {
+            // the latest setpoint issued at or before t
+            let recent = store.recent_setpoints(field.id, 8)?;
+            Ok::<_, EngineError>(match recent.iter().find(|s| s.time <= t) {
+                Some(s) if s.valid_until > t => (s.rate, s.valid_until),
+                _ => (0.0, t),
+            })
+        })?;
+        if let Some((from, to)) = advance.skipped {
             tracing::warn!(
-                field = field.id,
-                from = %from,
-                to = %p.time,
-                "simulation {} s behind the clock: skipped to replay at most {} s (limits.max_catch_up_s)",
-                (now - from).num_seconds(),
+                field = field.id, from = %from, to = %to,
+                "simulation behind the clock: skipped to replay at most {} s (limits.max_catch_up_s)",
                 self.max_catch_up_s
             );
         }
-        let mut failure = None;
-        while p.time + interval <= now {
-            if p.time >= rate_until {
-                // the latest setpoint issued at or before this interval's start
-                let recent = self.store.recent_setpoints(field.id, 8)?;
-                match recent.iter().find(|s| s.time <= p.time) {
-                    Some(s) if s.valid_until > p.time => {
-                        rate = s.rate;
-                        rate_until = s.valid_until;
-                    }
-                    _ => {
-                        rate = 0.0;
-                        rate_until = p.time + interval;
-                    }
-                }
-            }
-            // the scenario's 2-h amounts as rates, held over the interval
-            let forcing = self
-                .weather_at(p.spec.scenario, p.day_zero, p.time)
-                .forcing(rate, SCENARIO_STEP);
-            let report = match p.plant.step(forcing) {
-                Ok(report) => report,
-                Err(e) => {
-                    // what was simulated before stays stored
-                    failure = Some(EngineError::Plant(field.id, e.to_string()));
-                    break;
-                }
-            };
-            p.time += interval;
-            batch.push(super::wire::Measurement {
-                time: p.time,
-                theta: report.measured_water_content.clamp(0.0, 1.0),
-                sensor: None,
-                raw: None,
-                true_theta: Some(report.water_content),
-            });
-            let time = p.time;
-            push_others(&mut batch, &p.plant, &sensors, &p.spec, time);
-        }
+        let batch = advance.readings;
+        let failure = advance
+            .failure
+            .map(|e| EngineError::Plant(field.id, e.to_string()));
         if !batch.is_empty() {
             self.store.add_measurements(field.id, &batch)?;
             let state = serde_json::to_string(&p.state()).map_err(StoreError::from)?;
@@ -428,7 +177,7 @@ impl Engine {
         };
         let (spec, day_zero) = {
             let p = plant.lock().unwrap_or_else(|e| e.into_inner());
-            (p.spec, p.day_zero)
+            (*p.spec(), p.day_zero())
         };
         let period = field.spec.control_period_s;
         let mut rng = ChaCha8Rng::seed_from_u64(
@@ -748,7 +497,7 @@ impl Engine {
         };
         let day_zero = self
             .plant(field)?
-            .map(|p| p.lock().unwrap_or_else(|e| e.into_inner()).day_zero);
+            .map(|p| p.lock().unwrap_or_else(|e| e.into_inner()).day_zero());
         let mut past_u = vec![0.0; WINDOW];
         let mut past_y: Vec<Option<f64>> = vec![None; WINDOW];
         for k in 0..WINDOW {
@@ -769,7 +518,7 @@ impl Engine {
                 .map_or(0.0, |s| s.rate);
             let rain = match (scenario, day_zero) {
                 (Some(sc), Some(d0)) => {
-                    let w = self.weather_at(sc, d0, mid);
+                    let w = scenario_weather(sc, d0, mid);
                     mm_to_rate(w.precip_mm, SCENARIO_STEP)
                 }
                 _ => 0.0,
