@@ -5,6 +5,7 @@
 pub mod api;
 pub mod chart;
 pub mod clock;
+pub mod cycle;
 pub mod engine;
 pub mod metrics;
 pub mod settings;

@@ -1,0 +1,515 @@
+//! One control cycle as a pure step: [`decide`] maps what the cycle needs
+//! ([`CycleInputs`], read in one go by `Engine::load`) to the setpoint, with
+//! no storage, clock or I/O, so the bias, clamp and fallback logic is
+//! unit-tested on plain data. The engine then writes the setpoint once.
+
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+use chrono::{DateTime, TimeDelta, Timelike, Utc};
+
+use crate::control::{PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc};
+use crate::sim::{SCENARIO_STEP, scenario_series, scenario_weather};
+use crate::soil::{Field as Plant, FieldSettings, VanGenuchten};
+use crate::surrogate::evaluate::WINDOW;
+use crate::weather::{WeatherStep, mm_to_rate, rate_to_mm};
+
+use super::engine::Models;
+use super::wire::{Field, Forecast, Measurement, ModelKind, Scenario, Setpoint};
+
+/// How many past setpoints enter the bias (MODEL.md: f = 2).
+pub const BIAS_PERIOD: usize = 2;
+
+/// Everything one cycle reads.
+#[derive(Debug, Clone)]
+pub struct CycleInputs {
+    pub field: Field,
+    /// The cycle's time.
+    pub now: DateTime<Utc>,
+    /// The field's latest setpoints, newest first (at most WINDOW + BIAS_PERIOD).
+    pub recent: Vec<Setpoint>,
+    /// The primary sensor's measurements, oldest first: those of the
+    /// window's span and the latest at or before `now`.
+    pub measurements: Vec<Measurement>,
+    /// The latest stored forecast.
+    pub forecast: Option<Forecast>,
+    /// A simulated field's scenario and day zero (its past rain is known).
+    pub scenario: Option<(Scenario, DateTime<Utc>)>,
+    /// Degraded flags raised while loading (e.g. simulation-failed).
+    pub degraded: Vec<String>,
+}
+
+impl CycleInputs {
+    /// The latest measurement at or before `t`.
+    pub fn before(&self, t: DateTime<Utc>) -> Option<&Measurement> {
+        self.measurements.iter().rev().find(|m| m.time <= t)
+    }
+}
+
+fn seconds(d: TimeDelta) -> f64 {
+    d.num_milliseconds() as f64 / 1000.0
+}
+
+/// The climatological forecast: the dry scenario's daily ET0 cycle by
+/// hour of day, no rain; amounts per step of `period` seconds.
+pub fn climatology(t: DateTime<Utc>, period: f64) -> WeatherStep {
+    let hour = t.hour() as f64 + t.minute() as f64 / 60.0;
+    let k = ((hour * 3600.0) / SCENARIO_STEP).floor() as usize % 12;
+    let step = scenario_series(Scenario::Dry).steps()[k];
+    WeatherStep {
+        start_hour: hour,
+        et0_mm: step.et0_mm * period / SCENARIO_STEP,
+        precip_mm: 0.0,
+    }
+}
+
+/// The horizon's weather (amounts per control period) from the latest
+/// forecast, or the climatology where it is missing or stale (more than two
+/// periods old); and whether the climatology was used.
+fn horizon_weather(
+    forecast: Option<&Forecast>,
+    period: f64,
+    now: DateTime<Utc>,
+    n: usize,
+) -> (Vec<WeatherStep>, bool) {
+    let forecast = forecast.filter(|f| seconds(now - f.issued_at) <= 2.0 * period);
+    let mut defaulted = forecast.is_none();
+    let mut out = Vec::with_capacity(n);
+    for k in 0..n {
+        let t0 = now + TimeDelta::milliseconds((k as f64 * period * 1000.0) as i64);
+        let covered = forecast.as_ref().and_then(|f| {
+            // amounts of the forecast steps overlapping [t0, t0 + period)
+            let a = seconds(t0 - f.start);
+            let b = a + period;
+            let end = f.step_s * f.et0_mm.len() as f64;
+            if a < 0.0 || b > end + 1e-6 {
+                return None;
+            }
+            let (mut et0, mut precip) = (0.0, 0.0);
+            let first = (a / f.step_s).floor() as usize;
+            let last = ((b / f.step_s).ceil() as usize).min(f.et0_mm.len());
+            for i in first..last {
+                let lo = (i as f64 * f.step_s).max(a);
+                let hi = ((i + 1) as f64 * f.step_s).min(b);
+                let share = ((hi - lo) / f.step_s).max(0.0);
+                et0 += f.et0_mm[i] * share;
+                precip += f.precip_mm[i] * share;
+            }
+            Some(WeatherStep {
+                start_hour: 0.0,
+                et0_mm: et0,
+                precip_mm: precip,
+            })
+        });
+        match covered {
+            Some(w) => out.push(w),
+            None => {
+                defaulted = true;
+                out.push(climatology(t0, period));
+            }
+        }
+    }
+    (out, defaulted)
+}
+
+pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -> Setpoint {
+    let (field, now, recent) = (&inputs.field, inputs.now, &inputs.recent);
+    let spec = &field.spec;
+    let period = spec.control_period_s;
+    let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
+    let settings = spec.mpc_settings();
+    let n = settings.horizon;
+    let mut degraded = inputs.degraded.clone();
+    let (weather, defaulted) = horizon_weather(inputs.forecast.as_ref(), period, now, n);
+    if defaulted {
+        degraded.push("default-forecast".to_string());
+    }
+    let latest = inputs.before(now);
+    let fresh = latest
+        .as_ref()
+        .filter(|m| seconds(now - m.time) <= 2.0 * period);
+    // the current θ: measured, or predicted by the last cycle when stale
+    let measured_at = fresh.map(|m| m.time);
+    let mut current = fresh.map(|m| m.theta);
+    if current.is_none() {
+        if latest.is_some() {
+            degraded.push("stale-measurement".into());
+        } else {
+            degraded.push("no-measurement".into());
+        }
+        current = recent.first().and_then(|s| {
+            let k = (seconds(now - s.time) / period).round() as usize;
+            s.predicted_theta.get(k.saturating_sub(1)).copied()
+        });
+        if current.is_none() {
+            current = latest.as_ref().map(|m| m.theta);
+        }
+    }
+    let rain_rate: Vec<f64> = weather
+        .iter()
+        .map(|w| mm_to_rate(w.precip_mm, period))
+        .collect();
+    let mut mpc = ZoneMpc::new(settings);
+    mpc.set_cancel(Some(cancel.clone()));
+    if let Some(prev) = recent.first()
+        && seconds(now - prev.time) <= 1.5 * period
+        && prev.model == spec.model
+    {
+        mpc.remember(prev.plan.clone());
+    }
+    let mut bias = 0.0;
+    let mut one_step: Option<SurrogateModel> = None;
+    let solution = match (current, spec.model) {
+        (None, _) => None,
+        (Some(theta), ModelKind::Richards) => {
+            // the controller sees what a real field gives: measurements,
+            // never a simulated plant's true state (the column starts in
+            // equilibrium with the measured θ)
+            let soil = spec.soil.parameters().unwrap_or(VanGenuchten::SANDY_LOAM);
+            let head = soil.pressure_head_at(theta.clamp(
+                soil.residual_water_content + 1e-6,
+                soil.saturated_water_content - 1e-6,
+            ));
+            match Plant::new(FieldSettings {
+                soil,
+                crop: spec.crop(),
+                initial_head: head,
+                sampling_time: period,
+                ..FieldSettings::default()
+            }) {
+                Ok(plant) => {
+                    let mut model = RichardsModel::new(&plant, &weather);
+                    Some(mpc.solve(&mut model as &mut dyn PredictionModel))
+                }
+                Err(e) => {
+                    tracing::warn!(field = field.id, error = %e, "no Richards model");
+                    None
+                }
+            }
+        }
+        (Some(theta), kind) => {
+            let file = if kind == ModelKind::Lstm {
+                &models.lstm
+            } else {
+                &models.two_layer
+            };
+            let (past_u, past_y) = window(inputs, theta);
+            let mut model = SurrogateModel::new(file.predictor(), past_u, past_y);
+            // bias: mean over the last f cycles of y(t) − ŷ(t | t − 1)
+            let mut residuals = Vec::new();
+            for s in recent
+                .iter()
+                .filter(|s| s.valid_until <= now)
+                .take(BIAS_PERIOD)
+            {
+                if let Some(m) = inputs.before(s.valid_until)
+                    && seconds(s.valid_until - m.time) <= period / 2.0
+                    && let Some(predicted) = s.predicted_next
+                {
+                    residuals.push(m.theta - predicted);
+                }
+            }
+            if !residuals.is_empty() {
+                bias = residuals.iter().sum::<f64>() / residuals.len() as f64;
+            }
+            model.bias = bias;
+            model.rain = rain_rate.clone();
+            let sol = mpc.solve(&mut model);
+            one_step = Some(model);
+            Some(sol)
+        }
+    };
+    let Some(solution) = solution else {
+        degraded.push("solver-fallback".into());
+        let setpoint = Setpoint {
+            field_id: field.id,
+            time: now,
+            valid_from: now,
+            valid_until: now + period_d,
+            rate: 0.0,
+            amount_mm: 0.0,
+            plan: vec![0.0; n],
+            predicted_theta: Vec::new(),
+            zone: (1..=n)
+                .map(|k| {
+                    let (l, u) = settings.zone.bounds(k, n);
+                    [l, u]
+                })
+                .collect(),
+            model: spec.model,
+            status: "fallback".into(),
+            fallback_reason: Some(
+                if current.is_none() {
+                    "no measurement yet: no irrigation"
+                } else {
+                    "no prediction model: no irrigation"
+                }
+                .into(),
+            ),
+            iterations: 0,
+            solve_ms: 0.0,
+            degraded,
+            measured_at: None,
+            bias: 0.0,
+            predicted_next: None,
+        };
+        return setpoint;
+    };
+    let first = solution.plan.first().copied().unwrap_or(0.0);
+    let rate = if first.is_finite() {
+        first.clamp(0.0, settings.u_max)
+    } else {
+        0.0
+    };
+    let (status, reason) = match &solution.status {
+        SolveStatus::Converged => ("converged", None),
+        SolveStatus::IterationCap => ("iteration-cap", None),
+        SolveStatus::TimeBudget => ("time-budget", None),
+        SolveStatus::Fallback(why) => ("fallback", Some(why.clone())),
+    };
+    if reason.is_some() {
+        degraded.push("solver-fallback".into());
+    }
+    let predicted_next = match one_step.as_mut() {
+        Some(model) => model
+            .one_step(rate + rain_rate.first().copied().unwrap_or(0.0))
+            .ok(),
+        None => solution.predicted.first().copied(),
+    }
+    .filter(|p| p.is_finite());
+    Setpoint {
+        field_id: field.id,
+        time: now,
+        valid_from: now,
+        valid_until: now + period_d,
+        rate,
+        amount_mm: rate_to_mm(rate, period),
+        plan: solution
+            .plan
+            .iter()
+            .map(|u| {
+                if u.is_finite() {
+                    u.clamp(0.0, settings.u_max)
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+        predicted_theta: solution.predicted.clone(),
+        zone: solution.zone.iter().map(|&(l, u)| [l, u]).collect(),
+        model: spec.model,
+        status: status.into(),
+        fallback_reason: reason,
+        iterations: solution.iterations,
+        solve_ms: solution.solve_time.as_secs_f64() * 1e3,
+        degraded,
+        measured_at,
+        bias,
+        predicted_next,
+    }
+}
+
+/// The surrogate window at `now`: for each of the last 20 periods, the
+/// supply (the setpoint in force, plus the rain of a simulated field) and
+/// θ measured at its end; before the first measurement, (0, first θ).
+fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>) {
+    let (now, recent) = (inputs.now, &inputs.recent);
+    let period = inputs.field.spec.control_period_s;
+    let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
+    let mut past_u = vec![0.0; WINDOW];
+    let mut past_y: Vec<Option<f64>> = vec![None; WINDOW];
+    for k in 0..WINDOW {
+        // sample k ends at now − (WINDOW − 1 − k) periods
+        let end = now - period_d * (WINDOW - 1 - k) as i32;
+        let mid = end - period_d / 2;
+        past_y[k] = if k + 1 == WINDOW {
+            Some(current)
+        } else {
+            inputs
+                .before(end)
+                .filter(|m| seconds(end - m.time) <= period)
+                .map(|m| m.theta)
+        };
+        let applied = recent
+            .iter()
+            .find(|s| s.valid_from <= mid && mid < s.valid_until)
+            .map_or(0.0, |s| s.rate);
+        let rain = match inputs.scenario {
+            Some((sc, d0)) => {
+                let w = scenario_weather(sc, d0, mid);
+                mm_to_rate(w.precip_mm, SCENARIO_STEP)
+            }
+            _ => 0.0,
+        };
+        past_u[k] = applied + rain;
+    }
+    // before the first measurement: padded with it and no supply; gaps
+    // carry the previous value forward
+    let first = past_y
+        .iter()
+        .position(Option::is_some)
+        .unwrap_or(WINDOW - 1);
+    let first_y = past_y[first].unwrap_or(current);
+    let mut y = Vec::with_capacity(WINDOW);
+    let mut last = first_y;
+    for (k, v) in past_y.iter().enumerate() {
+        if k < first {
+            past_u[k] = 0.0;
+            y.push(first_y);
+        } else {
+            last = v.unwrap_or(last);
+            y.push(last);
+        }
+    }
+    (past_u, y)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::wire::{Actuator, FieldSpec};
+    use crate::surrogate::ModelFile;
+
+    fn models() -> Models {
+        let load = |text: &str, name: &str| {
+            ModelFile::from_json(text, std::path::Path::new(name)).unwrap()
+        };
+        Models {
+            two_layer: load(include_str!("../../models/two-layer.json"), "two-layer"),
+            lstm: load(include_str!("../../models/single-lstm.json"), "single-lstm"),
+        }
+    }
+
+    fn at(s: &str) -> DateTime<Utc> {
+        DateTime::parse_from_rfc3339(s).unwrap().to_utc()
+    }
+
+    fn inputs(model: ModelKind) -> CycleInputs {
+        CycleInputs {
+            field: Field {
+                id: 7,
+                created_at: at("2026-06-01T00:00:00Z"),
+                spec: FieldSpec {
+                    model,
+                    actuator: Actuator::None,
+                    simulation: None,
+                    ..FieldSpec::demo()
+                },
+            },
+            now: at("2026-06-02T12:00:00Z"),
+            recent: Vec::new(),
+            measurements: Vec::new(),
+            forecast: None,
+            scenario: None,
+            degraded: Vec::new(),
+        }
+    }
+
+    fn reading(t: &str, theta: f64) -> Measurement {
+        Measurement {
+            time: at(t),
+            theta,
+            sensor: None,
+            raw: None,
+            true_theta: None,
+        }
+    }
+
+    fn cancel() -> Arc<AtomicBool> {
+        Arc::default()
+    }
+
+    #[test]
+    fn without_a_measurement_the_cycle_falls_back_to_no_irrigation() {
+        let sp = decide(&inputs(ModelKind::TwoLayer), &models(), &cancel());
+        assert_eq!((sp.rate, sp.amount_mm), (0.0, 0.0));
+        assert_eq!(sp.status, "fallback");
+        for flag in ["no-measurement", "default-forecast", "solver-fallback"] {
+            assert!(sp.degraded.contains(&flag.to_string()), "{:?}", sp.degraded);
+        }
+        assert_eq!(sp.valid_until - sp.valid_from, TimeDelta::hours(2));
+        assert_eq!(sp.zone.len(), 20);
+    }
+
+    #[test]
+    fn a_dry_field_is_irrigated_within_the_limit_and_a_wet_one_is_not() {
+        let m = models();
+        let forecast = |i: &CycleInputs| Forecast {
+            issued_at: i.now,
+            start: i.now,
+            step_s: 7200.0,
+            et0_mm: vec![0.4; 24],
+            precip_mm: vec![0.0; 24],
+        };
+        for model in [ModelKind::Richards, ModelKind::TwoLayer] {
+            let mut dry = inputs(model);
+            dry.measurements = vec![reading("2026-06-02T11:55:00Z", 0.15)];
+            dry.forecast = Some(forecast(&dry));
+            let sp = decide(&dry, &m, &cancel());
+            assert!(sp.rate > 0.0 && sp.rate <= 1e-5, "{model:?}: {sp:?}");
+            assert!(sp.plan.iter().all(|u| (0.0..=1e-5).contains(u)));
+            assert_eq!(sp.measured_at, Some(at("2026-06-02T11:55:00Z")));
+            assert!(sp.degraded.is_empty(), "{:?}", sp.degraded);
+            let mut wet = dry.clone();
+            wet.measurements = vec![reading("2026-06-02T11:55:00Z", 0.26)];
+            let sp = decide(&wet, &m, &cancel());
+            // zero to the QP's tolerance: less than a micrometre of water.
+            // (A surrogate without history starts from a flat padded window
+            // and still irrigates a wet field: issue 17's "blind first
+            // cycle", not yet fixed.)
+            if model == ModelKind::Richards {
+                assert!(sp.amount_mm < 1e-6, "{model:?}: {sp:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_bias_is_the_mean_one_step_residual_of_the_last_two_cycles() {
+        let m = models();
+        let mut i = inputs(ModelKind::TwoLayer);
+        let past = |t: &str, until: &str, predicted: f64| Setpoint {
+            field_id: 7,
+            time: at(t),
+            valid_from: at(t),
+            valid_until: at(until),
+            rate: 0.0,
+            amount_mm: 0.0,
+            plan: vec![0.0; 20],
+            predicted_theta: vec![predicted; 20],
+            zone: vec![[0.18, 0.23]; 20],
+            model: ModelKind::TwoLayer,
+            status: "converged".into(),
+            fallback_reason: None,
+            iterations: 1,
+            solve_ms: 1.0,
+            degraded: Vec::new(),
+            measured_at: None,
+            bias: 0.0,
+            predicted_next: Some(predicted),
+        };
+        // newest first; a third, older one does not count
+        i.recent = vec![
+            past("2026-06-02T10:00:00Z", "2026-06-02T12:00:00Z", 0.200),
+            past("2026-06-02T08:00:00Z", "2026-06-02T10:00:00Z", 0.210),
+            past("2026-06-02T06:00:00Z", "2026-06-02T08:00:00Z", 0.300),
+        ];
+        i.measurements = vec![
+            reading("2026-06-02T08:00:00Z", 0.250),
+            reading("2026-06-02T10:00:00Z", 0.205),
+            reading("2026-06-02T12:00:00Z", 0.195),
+        ];
+        let sp = decide(&i, &m, &cancel());
+        // (0.205 − 0.210 + 0.195 − 0.200) / 2
+        assert!((sp.bias - (-0.005)).abs() < 1e-12, "{}", sp.bias);
+    }
+
+    #[test]
+    fn a_stale_measurement_is_flagged_and_the_last_prediction_used() {
+        let m = models();
+        let mut i = inputs(ModelKind::TwoLayer);
+        i.measurements = vec![reading("2026-06-02T04:00:00Z", 0.2)];
+        let sp = decide(&i, &m, &cancel());
+        assert!(sp.degraded.contains(&"stale-measurement".to_string()));
+        assert_eq!(sp.measured_at, None);
+    }
+}
