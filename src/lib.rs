@@ -9,6 +9,7 @@
 //! predict, the controller decides, the edge publishes.
 
 pub mod control;
+pub mod estimate;
 pub mod experiment;
 pub mod fieldsim;
 pub mod service;

@@ -75,7 +75,7 @@ enum Command {
     },
     /// Reproduce one of the paper's experiments (tables as Markdown and CSV, figures as SVG).
     Experiment {
-        /// e1 … e7, or all (E1–E7 and one report).
+        /// e1 … e8, or all (E1–E8 and one report).
         id: String,
         /// Folder of the trained model files.
         #[arg(long, default_value = "models")]
@@ -93,6 +93,48 @@ enum Command {
         /// Validation samples per set (smaller for smoke runs).
         #[arg(long, default_value_t = 5000)]
         samples: usize,
+    },
+    /// A season of any controller against any plant ("what if"): the trace
+    /// as CSV, the scores as JSON on standard output.
+    ClosedLoop {
+        /// The plant's soil: a texture name (e.g. sandy-loam) or
+        /// ks=…,alpha=…,n=…,theta_r=…,theta_s=… (SI units, α in 1/m).
+        #[arg(long)]
+        plant: String,
+        /// oracle (the Richards ZMPC given the plant's true soil and state),
+        /// richards (the Richards ZMPC on the estimated state and soil),
+        /// two-layer or single-lstm (sandy loam only: the shipped models).
+        #[arg(long)]
+        controller: String,
+        /// The estimator's prior: a texture name or unknown (default: the
+        /// plant's texture when it is named, else unknown).
+        #[arg(long)]
+        prior: Option<String>,
+        /// Weather CSV: step,start_hour,et0_mm,precip_mm (default: the
+        /// embedded weather-dry).
+        #[arg(long)]
+        weather: Option<PathBuf>,
+        /// Control steps of 2 h.
+        #[arg(long, default_value_t = 60)]
+        steps: usize,
+        /// Process noise level, e.g. 0.02 for 2 %.
+        #[arg(long, default_value_t = 0.0)]
+        process_noise: f64,
+        /// Measurement noise level, e.g. 0.02 for 2 %.
+        #[arg(long, default_value_t = 0.0)]
+        measurement_noise: f64,
+        /// Forecast error level, e.g. 0.2 for 20 %.
+        #[arg(long, default_value_t = 0.0)]
+        forecast_error: f64,
+        /// Seed of the noise, the forecast error and the estimator.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Sensor depths [m], comma-separated (default: 0.125, the rooting depth).
+        #[arg(long, value_delimiter = ',')]
+        sensor_depths: Option<Vec<f64>>,
+        /// Write the step-by-step trace CSV here.
+        #[arg(long)]
+        trace: Option<PathBuf>,
     },
     /// Simulate fields beside a controller: measurements and forecasts to it
     /// over HTTP, setpoints back through its webhook actuator.
@@ -212,6 +254,31 @@ fn main() -> ExitCode {
             }
             Ok(())
         })(),
+        Command::ClosedLoop {
+            plant,
+            controller,
+            prior,
+            weather,
+            steps,
+            process_noise,
+            measurement_noise,
+            forecast_error,
+            seed,
+            sensor_depths,
+            trace,
+        } => closed_loop(ClosedLoopArgs {
+            plant,
+            controller,
+            prior,
+            weather,
+            steps,
+            process_noise,
+            measurement_noise,
+            forecast_error,
+            seed,
+            sensor_depths,
+            trace,
+        }),
         Command::Serve { config } => serve(config),
         Command::FieldSim { controller, config } => field_sim(controller, config),
     };
@@ -309,6 +376,66 @@ fn train(
         outcome.report.display(),
         outcome.seconds
     );
+    Ok(())
+}
+
+struct ClosedLoopArgs {
+    plant: String,
+    controller: String,
+    prior: Option<String>,
+    weather: Option<PathBuf>,
+    steps: usize,
+    process_noise: f64,
+    measurement_noise: f64,
+    forecast_error: f64,
+    seed: u64,
+    sensor_depths: Option<Vec<f64>>,
+    trace: Option<PathBuf>,
+}
+
+/// `rootzone closed-loop`: one run, JSON on standard output.
+fn closed_loop(args: ClosedLoopArgs) -> anyhow::Result<()> {
+    use rootzone::estimate::{EstimatorSettings, Prior};
+    use rootzone::experiment::estimated::{
+        Case, ControllerChoice, parse_soil, run_case, summary, trace,
+    };
+    use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
+    let (plant, texture) = parse_soil(&args.plant).map_err(|e| anyhow::anyhow!("--plant: {e}"))?;
+    let controller: ControllerChoice = args
+        .controller
+        .parse()
+        .map_err(|e| anyhow::anyhow!("--controller: {e}"))?;
+    let prior = match args.prior.as_deref() {
+        None => texture.map_or(Prior::Unknown, Prior::Texture),
+        Some("unknown") => Prior::Unknown,
+        Some(name) => Prior::Texture(
+            name.parse::<Texture>()
+                .map_err(|e| anyhow::anyhow!("--prior: {e} or unknown"))?,
+        ),
+    };
+    let weather = match &args.weather {
+        Some(path) => WeatherSeries::from_file(path)?,
+        None => WeatherSeries::parse(DRY_SCENARIO, "weather-dry")?,
+    };
+    let case = Case {
+        plant,
+        controller,
+        prior,
+        weather,
+        steps: args.steps,
+        process_noise: args.process_noise,
+        measurement_noise: args.measurement_noise,
+        forecast_error: args.forecast_error,
+        seed: args.seed,
+        sensor_depths: args.sensor_depths.unwrap_or_else(|| vec![0.125]),
+        estimator: EstimatorSettings::default(),
+    };
+    let run = run_case(&case).map_err(|e| anyhow::anyhow!("{e}"))?;
+    if let Some(path) = &args.trace {
+        std::fs::write(path, trace(&run))
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
+    }
+    println!("{}", serde_json::to_string_pretty(&summary(&case, &run))?);
     Ok(())
 }
 

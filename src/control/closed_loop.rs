@@ -12,6 +12,7 @@ use crate::soil::{Field, FieldSettings};
 use crate::weather::{WeatherSeries, rate_to_mm};
 
 use super::controller::Controller;
+use super::estimated::EstimatedRichards;
 use super::mpc::SolveStatus;
 
 /// The setting of one closed-loop run.
@@ -102,31 +103,41 @@ impl ClosedLoopRun {
         total / self.records.len().max(1) as f64
     }
 
-    pub fn solve_times(&self) -> TimeStatistics {
-        let mut ms: Vec<f64> = self
+    /// Dry-side violation (MODEL.md §4, the headline): mean over the steps
+    /// of max(0, low − θ_true) [m³/m³].
+    pub fn dry_violation(&self) -> f64 {
+        let low = self.scoring_zone.0;
+        let total: f64 = self
             .records
             .iter()
-            .map(|r| r.solve_time.as_secs_f64() * 1e3)
-            .collect();
-        if ms.is_empty() {
-            return TimeStatistics {
-                mean_ms: 0.0,
-                median_ms: 0.0,
-                p95_ms: 0.0,
-            };
-        }
-        ms.sort_by(f64::total_cmp);
-        let quantile = |q: f64| {
-            // linear interpolation between order statistics
-            let x = q * (ms.len() - 1) as f64;
-            let (i, f) = (x.floor() as usize, x.fract());
-            ms[i] + f * (ms[(i + 1).min(ms.len() - 1)] - ms[i])
-        };
-        TimeStatistics {
-            mean_ms: ms.iter().sum::<f64>() / ms.len() as f64,
-            median_ms: quantile(0.5),
-            p95_ms: quantile(0.95),
-        }
+            .map(|r| (low - r.true_theta).max(0.0))
+            .sum();
+        total / self.records.len().max(1) as f64
+    }
+
+    /// Wet-side violation after entry (MODEL.md §4): mean over all steps of
+    /// max(0, θ_true − up), counted from the first step with θ_true ≤ up.
+    pub fn wet_violation_after_entry(&self) -> f64 {
+        let up = self.scoring_zone.1;
+        let entry = self
+            .records
+            .iter()
+            .position(|r| r.true_theta <= up)
+            .unwrap_or(self.records.len());
+        let total: f64 = self.records[entry..]
+            .iter()
+            .map(|r| (r.true_theta - up).max(0.0))
+            .sum();
+        total / self.records.len().max(1) as f64
+    }
+
+    pub fn solve_times(&self) -> TimeStatistics {
+        time_statistics(
+            self.records
+                .iter()
+                .map(|r| r.solve_time.as_secs_f64() * 1e3)
+                .collect(),
+        )
     }
 
     /// Control steps whose solve fell back to a safe plan.
@@ -135,6 +146,29 @@ impl ClosedLoopRun {
             .iter()
             .filter(|r| matches!(r.status, SolveStatus::Fallback(_)))
             .count()
+    }
+}
+
+/// Mean, median and 95th percentile of durations in ms.
+pub fn time_statistics(mut ms: Vec<f64>) -> TimeStatistics {
+    if ms.is_empty() {
+        return TimeStatistics {
+            mean_ms: 0.0,
+            median_ms: 0.0,
+            p95_ms: 0.0,
+        };
+    }
+    ms.sort_by(f64::total_cmp);
+    let quantile = |q: f64| {
+        // linear interpolation between order statistics
+        let x = q * (ms.len() - 1) as f64;
+        let (i, f) = (x.floor() as usize, x.fract());
+        ms[i] + f * (ms[(i + 1).min(ms.len() - 1)] - ms[i])
+    };
+    TimeStatistics {
+        mean_ms: ms.iter().sum::<f64>() / ms.len() as f64,
+        median_ms: quantile(0.5),
+        p95_ms: quantile(0.95),
     }
 }
 
@@ -214,5 +248,244 @@ pub fn run_closed_loop(
         sampling_time,
         scoring_zone: settings.scoring_zone,
         water_balance: field.water_balance(),
+    })
+}
+
+/// A controller of the observed closed loop ([`run_observed_loop`]).
+#[derive(Debug, Clone)]
+pub enum LoopController {
+    /// The **oracle**: the Richards-model ZMPC given the plant's true soil and
+    /// true state at every step. A yardstick for experiments, never a
+    /// controller a deployment can run; the only one the loop shows the plant.
+    Oracle(Controller),
+    /// A surrogate controller: sees the reading of the first sensor, the
+    /// applied irrigation and the observed rain.
+    Surrogate(Controller),
+    /// The Richards-model ZMPC on the estimated state and soil.
+    Estimated(Box<EstimatedRichards>),
+}
+
+impl LoopController {
+    fn horizon(&self) -> usize {
+        match self {
+            LoopController::Oracle(c) | LoopController::Surrogate(c) => c.settings().horizon,
+            LoopController::Estimated(e) => e.settings().horizon,
+        }
+    }
+}
+
+/// What the estimator knew after one step of an observed run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EstimateRecord {
+    pub step: usize,
+    /// Estimated and true θ in the cell of the rooting depth (the controlled output).
+    pub sensor_theta: f64,
+    pub true_sensor_theta: f64,
+    /// RMS over the cells of estimated − true θ.
+    pub profile_rmse: f64,
+    /// Wall time of the predict + update [ms].
+    pub estimator_ms: f64,
+    /// The estimator diverged at this step and was reset to its prior.
+    pub reset: bool,
+}
+
+/// A run of [`run_observed_loop`]: the closed-loop run, and for the
+/// estimated controller what it estimated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObservedRun {
+    pub run: ClosedLoopRun,
+    pub estimates: Vec<EstimateRecord>,
+    /// The final parameter estimates (estimated controller only).
+    pub parameters: Vec<crate::estimate::ParameterEstimate>,
+    pub resets: usize,
+    pub replaced_members: u64,
+}
+
+/// Steps after which the estimation errors are scored (the first day).
+pub const ESTIMATE_SCORED_FROM: usize = 12;
+
+impl ObservedRun {
+    fn rms(&self, f: impl Fn(&EstimateRecord) -> f64) -> Option<f64> {
+        let scored: Vec<f64> = self
+            .estimates
+            .iter()
+            .filter(|e| e.step >= ESTIMATE_SCORED_FROM)
+            .map(f)
+            .collect();
+        (!scored.is_empty())
+            .then(|| (scored.iter().map(|v| v * v).sum::<f64>() / scored.len() as f64).sqrt())
+    }
+
+    /// RMS of the estimated − true θ at the rooting depth after the first day.
+    pub fn sensor_rmse(&self) -> Option<f64> {
+        self.rms(|e| e.sensor_theta - e.true_sensor_theta)
+    }
+
+    /// RMS over time (after the first day) of the profile RMS error.
+    pub fn profile_rmse(&self) -> Option<f64> {
+        self.rms(|e| e.profile_rmse)
+    }
+
+    pub fn estimator_times(&self) -> TimeStatistics {
+        time_statistics(self.estimates.iter().map(|e| e.estimator_ms).collect())
+    }
+}
+
+/// Builds the controller from the first readings (one per sensor depth).
+pub type LoopFactory<'a> = dyn FnMut(&[f64]) -> LoopController + 'a;
+
+/// The closed loop with sensors at `sensor_depths` [m] and a controller
+/// that sees only what a deployment sees, except the oracle. The reading of
+/// the sensor in the rooting-depth cell is the field's own measurement (its
+/// noise stream, as in [`run_closed_loop`]); other depths read θ of their
+/// cell with the same relative noise from their own stream. At every step
+/// the controller gets a forecast of the horizon, its setpoint is applied
+/// over one sampling step under the true weather, and it observes the
+/// applied irrigation, the observed weather of that step and the readings.
+pub fn run_observed_loop(
+    settings: &ClosedLoopSettings,
+    sensor_depths: &[f64],
+    weather: &WeatherSeries,
+    make: &mut LoopFactory<'_>,
+) -> Result<ObservedRun, ClosedLoopError> {
+    use rand::RngExt;
+    if weather.is_empty() {
+        return Err(ClosedLoopError::NoWeather);
+    }
+    let mut field = Field::new(settings.field).map_err(ClosedLoopError::Field)?;
+    let column = *field.column();
+    let cells: Vec<usize> = sensor_depths
+        .iter()
+        .map(|&d| {
+            if d.is_finite() && (0.0..=column.depth()).contains(&d) {
+                Ok(crate::estimate::cell_of(d, column.depth(), column.cells()))
+            } else {
+                Err(ClosedLoopError::Field(format!(
+                    "sensor depth {d} m is outside the column (0 … {} m)",
+                    column.depth()
+                )))
+            }
+        })
+        .collect::<Result<_, _>>()?;
+    if cells.is_empty() {
+        return Err(ClosedLoopError::Field(
+            "at least one sensor is needed".into(),
+        ));
+    }
+    let own = cells.iter().position(|&c| c == column.sensor_cell());
+    let mut sensor_rng = ChaCha8Rng::seed_from_u64(settings.field.seed);
+    sensor_rng.set_stream(3);
+    let noise = settings.field.measurement_noise;
+    let mut read = |field: &mut Field, own_reading: f64| -> Vec<f64> {
+        let theta = field.water_contents();
+        cells
+            .iter()
+            .enumerate()
+            .map(|(k, &c)| {
+                if Some(k) == own {
+                    own_reading
+                } else {
+                    let v = noise * (2.0 * sensor_rng.random::<f64>() - 1.0);
+                    theta[c] * (1.0 + v)
+                }
+            })
+            .collect()
+    };
+    let sampling_time = settings.field.sampling_time;
+    let mut forecast_rng = ChaCha8Rng::seed_from_u64(settings.forecast_seed);
+    let initial_theta = field.water_content();
+    let first_own = field.measure();
+    let first = read(&mut field, first_own);
+    let mut controller = make(&first);
+    let horizon = controller.horizon();
+    let last = weather.len() - 1;
+    let mut records = Vec::with_capacity(settings.steps);
+    let mut estimates = Vec::new();
+    for step in 0..settings.steps {
+        let forecast = weather.forecast(step, horizon, settings.forecast_error, &mut forecast_rng);
+        let decision = match &mut controller {
+            LoopController::Oracle(c) => c.decide(&forecast, Some(&field)),
+            LoopController::Surrogate(c) => c.decide(&forecast, None),
+            LoopController::Estimated(e) => e.decide(&forecast),
+        };
+        let truth = weather.steps()[step.min(last)];
+        let forcing = truth.forcing(decision.setpoint, sampling_time);
+        let report = field.step(forcing).map_err(|e| ClosedLoopError::Plant {
+            step,
+            message: e.to_string(),
+        })?;
+        let readings = read(&mut field, report.measured_water_content);
+        let mut bias = 0.0;
+        match &mut controller {
+            LoopController::Oracle(c) | LoopController::Surrogate(c) => {
+                let primary = own.map_or(readings[0], |k| readings[k]);
+                c.observe(decision.setpoint, truth.precip_mm, primary);
+                bias = c.bias();
+            }
+            LoopController::Estimated(e) => {
+                let indexed: Vec<(usize, f64)> = readings.iter().copied().enumerate().collect();
+                let reset = matches!(
+                    e.observe(forcing, &indexed),
+                    Err(crate::estimate::EstimateError::Diverged(_))
+                );
+                let profile = e.estimator().profile();
+                let true_theta = field.water_contents();
+                let sensor = column.sensor_cell();
+                let profile_rmse = (profile
+                    .iter()
+                    .zip(&true_theta)
+                    .map(|(p, t)| (p.theta_mean - t).powi(2))
+                    .sum::<f64>()
+                    / true_theta.len() as f64)
+                    .sqrt();
+                estimates.push(EstimateRecord {
+                    step,
+                    sensor_theta: profile[sensor].theta_mean,
+                    true_sensor_theta: true_theta[sensor],
+                    profile_rmse,
+                    estimator_ms: e.last_estimate_time().as_secs_f64() * 1e3,
+                    reset,
+                });
+            }
+        }
+        let solution = decision.solution;
+        records.push(StepRecord {
+            step,
+            irrigation: decision.setpoint,
+            precip_mm: truth.precip_mm,
+            et0_mm: truth.et0_mm,
+            true_theta: report.water_content,
+            measured_theta: own.map_or(readings[0], |k| readings[k]),
+            zone: solution
+                .zone
+                .first()
+                .copied()
+                .unwrap_or((f64::NAN, f64::NAN)),
+            bias,
+            solve_time: solution.solve_time,
+            iterations: solution.iterations,
+            status: solution.status,
+        });
+    }
+    let (parameters, resets, replaced_members) = match &controller {
+        LoopController::Estimated(e) => (
+            e.estimator().parameters(),
+            e.resets(),
+            e.estimator().statistics().replaced_members,
+        ),
+        _ => (Vec::new(), 0, 0),
+    };
+    Ok(ObservedRun {
+        run: ClosedLoopRun {
+            initial_theta,
+            records,
+            sampling_time,
+            scoring_zone: settings.scoring_zone,
+            water_balance: field.water_balance(),
+        },
+        estimates,
+        parameters,
+        resets,
+        replaced_members,
     })
 }

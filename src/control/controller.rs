@@ -68,8 +68,15 @@ impl Controller {
         }
     }
 
-    /// A controller with the Richards model, which reads the full state of
-    /// the field it is given at every decision.
+    /// The **oracle**: the Richards model reading the true soil and the full
+    /// true state of the field it is given at every decision. A yardstick
+    /// for experiments only; no deployment has a plant's truth (see
+    /// [`super::EstimatedRichards`] for the controller that estimates it).
+    pub fn oracle(settings: MpcSettings, sampling_time: f64) -> Controller {
+        Controller::richards(settings, sampling_time)
+    }
+
+    /// The same as [`Controller::oracle`] (its older name).
     pub fn richards(settings: MpcSettings, sampling_time: f64) -> Controller {
         Controller {
             mpc: ZoneMpc::new(settings),

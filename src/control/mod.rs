@@ -4,12 +4,17 @@
 
 pub mod closed_loop;
 pub mod controller;
+pub mod estimated;
 pub mod model;
 pub mod mpc;
 pub mod zone;
 
-pub use closed_loop::{ClosedLoopRun, ClosedLoopSettings, StepRecord, run_closed_loop};
+pub use closed_loop::{
+    ClosedLoopRun, ClosedLoopSettings, EstimateRecord, LoopController, ObservedRun, StepRecord,
+    run_closed_loop, run_observed_loop,
+};
 pub use controller::{Controller, Decision};
+pub use estimated::EstimatedRichards;
 pub use model::{ModelError, PredictionModel, RichardsModel, SurrogateModel};
 pub use mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc, objective};
 pub use zone::ZoneSettings;

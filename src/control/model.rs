@@ -1,6 +1,8 @@
 //! Prediction models behind one interface.
 
-use crate::soil::{ColumnState, Field, Forcing, Integrator, Interrupt};
+use crate::soil::{
+    Column, ColumnState, Crop, Field, Forcing, Integrator, Interrupt, Tolerances, VanGenuchten,
+};
 use crate::surrogate::Predictor;
 use crate::surrogate::evaluate::WINDOW;
 use crate::weather::WeatherStep;
@@ -156,7 +158,8 @@ pub struct RichardsModel {
 
 impl RichardsModel {
     /// The model at `field`'s current (true) state, with `forecast` (one step
-    /// per horizon step; the last repeats if it is short).
+    /// per horizon step; the last repeats if it is short). Reading the
+    /// plant's truth is what the **oracle** does (experiments only).
     pub fn new(field: &Field, forecast: &[WeatherStep]) -> RichardsModel {
         let sampling_time = field.settings().sampling_time;
         RichardsModel {
@@ -168,6 +171,36 @@ impl RichardsModel {
                 .collect(),
             sampling_time,
         }
+    }
+
+    /// The model of a column of `soil` and `crop`, `depth` m deep with one
+    /// cell per head, from `heads` (e.g. an estimator's mean state): what a
+    /// controller that does not see the plant's truth predicts with.
+    pub fn from_state(
+        soil: VanGenuchten,
+        crop: Crop,
+        depth: f64,
+        heads: Vec<f64>,
+        forecast: &[WeatherStep],
+        sampling_time: f64,
+    ) -> Result<RichardsModel, ModelError> {
+        let column = Column::new(soil, crop, depth, heads.len()).map_err(ModelError)?;
+        let integrator = Integrator::new(column, Tolerances::default()).map_err(ModelError)?;
+        if heads.iter().any(|h| !h.is_finite()) {
+            return Err(ModelError("the Richards model needs finite heads".into()));
+        }
+        Ok(RichardsModel {
+            integrator,
+            state: ColumnState {
+                heads,
+                amounts: [0.0; crate::soil::column::AMOUNTS],
+            },
+            forecast: forecast
+                .iter()
+                .map(|w| w.forcing(0.0, sampling_time))
+                .collect(),
+            sampling_time,
+        })
     }
 
     fn forcing(&self, k: usize, irrigation: f64) -> Result<Forcing, ModelError> {

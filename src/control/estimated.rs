@@ -1,0 +1,143 @@
+//! The Richards-model zone MPC on the **estimated** state and soil: a
+//! controller that sees only the sensors' readings, the irrigation it applied,
+//! the observed weather and the forecasts. It runs the ensemble filter of
+//! [`crate::estimate`] between steps and starts each solve from the
+//! estimator's mean state ([`Estimator::mean_heads`]) with its mean soil
+//! ([`Estimator::soil`]). It never reads a plant: that is the oracle's
+//! privilege ([`super::Controller::oracle`]).
+
+use std::time::{Duration, Instant};
+
+use crate::estimate::{EstimateError, Estimator, UpdateReport};
+use crate::soil::{Crop, Forcing};
+use crate::weather::WeatherStep;
+
+use super::controller::Decision;
+use super::model::RichardsModel;
+use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
+
+/// The estimated-Richards controller.
+#[derive(Debug, Clone)]
+pub struct EstimatedRichards {
+    mpc: ZoneMpc,
+    estimator: Estimator,
+    crop: Crop,
+    sampling_time: f64,
+    /// Times the estimator diverged and was reset to its prior.
+    resets: usize,
+    /// Wall time of the last predict + update.
+    last_estimate_time: Duration,
+    last_error: Option<String>,
+}
+
+impl EstimatedRichards {
+    pub fn new(
+        settings: MpcSettings,
+        estimator: Estimator,
+        crop: Crop,
+        sampling_time: f64,
+    ) -> EstimatedRichards {
+        EstimatedRichards {
+            mpc: ZoneMpc::new(settings),
+            estimator,
+            crop,
+            sampling_time,
+            resets: 0,
+            last_estimate_time: Duration::ZERO,
+            last_error: None,
+        }
+    }
+
+    pub fn settings(&self) -> &MpcSettings {
+        &self.mpc.settings
+    }
+
+    pub fn estimator(&self) -> &Estimator {
+        &self.estimator
+    }
+
+    /// Times the estimator was reset (each a `degraded: ["estimator-reset"]`).
+    pub fn resets(&self) -> usize {
+        self.resets
+    }
+
+    pub fn last_estimate_time(&self) -> Duration {
+        self.last_estimate_time
+    }
+
+    /// Why the last observation degraded the estimate, if it did.
+    pub fn last_error(&self) -> Option<&str> {
+        self.last_error.as_deref()
+    }
+
+    /// Solves the zone MPC from the estimate under `forecast`.
+    pub fn decide(&mut self, forecast: &[WeatherStep]) -> Decision {
+        let soil = self.estimator.soil();
+        self.mpc.settings.theta_r = soil.residual_water_content;
+        self.mpc.settings.theta_s = soil.saturated_water_content;
+        let depth = self.estimator.settings().depth;
+        let solution = match RichardsModel::from_state(
+            soil,
+            self.crop,
+            depth,
+            self.estimator.mean_heads(),
+            forecast,
+            self.sampling_time,
+        ) {
+            Ok(mut model) => self.mpc.solve(&mut model),
+            Err(e) => {
+                let n = self.mpc.settings.horizon;
+                Solution {
+                    plan: vec![0.0; n],
+                    predicted: Vec::new(),
+                    zone: (1..=n)
+                        .map(|k| self.mpc.settings.zone.bounds(k, n))
+                        .collect(),
+                    status: SolveStatus::Fallback(e.to_string()),
+                    iterations: 0,
+                    objective: f64::NAN,
+                    solve_time: Duration::ZERO,
+                }
+            }
+        };
+        let first = solution.plan.first().copied().unwrap_or(0.0);
+        let setpoint = if first.is_finite() {
+            first.clamp(0.0, self.mpc.settings.u_max)
+        } else {
+            0.0
+        };
+        Decision { setpoint, solution }
+    }
+
+    /// Records the last step: the forcing it ran under (applied irrigation,
+    /// observed ET0 and rain) and the readings (sensor index, θ) at its end.
+    /// A diverged estimator is reset to its prior (and the readings
+    /// assimilated into the fresh one); the error is returned for the
+    /// caller to record.
+    pub fn observe(
+        &mut self,
+        forcing: Forcing,
+        readings: &[(usize, f64)],
+    ) -> Result<UpdateReport, EstimateError> {
+        let start = Instant::now();
+        let outcome = self
+            .estimator
+            .predict(forcing, self.sampling_time)
+            .and_then(|()| self.estimator.update(readings));
+        let result = match outcome {
+            Err(EstimateError::Diverged(why)) => {
+                self.resets += 1;
+                self.estimator.reset_to_prior();
+                let _ = self.estimator.update(readings);
+                self.last_error = Some(why.clone());
+                Err(EstimateError::Diverged(why))
+            }
+            other => {
+                self.last_error = other.as_ref().err().map(|e| e.to_string());
+                other
+            }
+        };
+        self.last_estimate_time = start.elapsed();
+        result
+    }
+}
