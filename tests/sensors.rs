@@ -136,3 +136,67 @@ fn a_simulated_plant_reads_every_sensor_at_its_depth() {
         );
     }
 }
+
+#[test]
+fn the_daemon_estimates_the_state_and_soil_from_the_readings_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    let r = post(
+        &d,
+        "/v1/fields",
+        &json!({"name": "est", "model": "richards", "soil": "loam",
+                "sensors": [{"id": "root", "depth": 0.13}, {"id": "deep", "depth": 0.35}]}),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let path = format!("/v1/fields/{id}");
+    // before any reading: no estimate
+    let e = json_of(&curl(&d, "GET", &format!("{path}/estimate"), None, None).2);
+    assert_eq!(e["estimated"], false, "{e}");
+    // readings of both sensors over two hours, then a cycle
+    let batch: Vec<Value> = (0..5)
+        .flat_map(|k| {
+            let t = now_minus(120 - 30 * k);
+            [
+                json!({"time": t, "theta": 0.30}),
+                json!({"time": t, "theta": 0.32, "sensor": "deep"}),
+            ]
+        })
+        .collect();
+    let r = post(&d, &format!("{path}/measurements"), &Value::from(batch));
+    assert_eq!(r.0, 201, "{}", r.2);
+    let r = curl(&d, "POST", &format!("{path}/control"), None, Some(TOKEN));
+    assert_eq!(r.0, 200, "{}", r.2);
+    let e = json_of(&curl(&d, "GET", &format!("{path}/estimate"), None, None).2);
+    assert_eq!(e["estimated"], true, "{e}");
+    let profile = e["profile"].as_array().unwrap();
+    assert_eq!(profile.len(), 26);
+    // the estimate follows the readings at the sensors' depths, with a band
+    let at = |depth: f64| {
+        profile
+            .iter()
+            .min_by(|a, b| {
+                let da = (a["depth"].as_f64().unwrap() - depth).abs();
+                let db = (b["depth"].as_f64().unwrap() - depth).abs();
+                da.partial_cmp(&db).unwrap()
+            })
+            .unwrap()
+            .clone()
+    };
+    let root = at(0.125);
+    assert!(
+        (root["theta"].as_f64().unwrap() - 0.30).abs() < 0.03,
+        "{root}"
+    );
+    assert!(root["theta_sd"].as_f64().unwrap() > 0.0, "{root}");
+    assert!(root["low"].as_f64() < root["high"].as_f64());
+    let params = e["parameters"].as_array().unwrap();
+    assert!(params.len() >= 5, "{e}");
+    for p in params {
+        assert!(
+            p["mean"].as_f64().unwrap().is_finite() && p["sd"].as_f64().unwrap() >= 0.0,
+            "{p}"
+        );
+    }
+    assert!(!e["innovations"].as_array().unwrap().is_empty(), "{e}");
+}

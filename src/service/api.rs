@@ -127,6 +127,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/fields/{id}/setpoints", get(get_setpoints))
         .route("/v1/fields/{id}/control", post(post_control))
         .route("/v1/fields/{id}/simulation", get(get_simulation))
+        .route("/v1/fields/{id}/estimate", get(get_estimate))
         .route("/v1/fields/{id}/chart.svg", get(get_chart))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
         .method_not_allowed_fallback(|| async {
@@ -898,6 +899,60 @@ async fn get_simulation(
         };
         doc["simulated"] = serde_json::Value::Bool(doc.get("time").is_some());
         Ok(Json(doc))
+    })
+    .await
+}
+
+/// The field's state estimate as last updated (by its latest cycle): the θ
+/// profile with its band, the parameters with their standard deviations,
+/// the innovations of the last update; `estimated: false` before the first.
+async fn get_estimate(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<serde_json::Value>> {
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    blocking(move || {
+        let stored: Option<super::engine::StoredEstimate> = engine
+            .store
+            .estimate(field.id)
+            .map_err(ApiError::internal)?
+            .and_then(|body| serde_json::from_str(&body).ok());
+        let Some(stored) = stored else {
+            return Ok(Json(serde_json::json!({ "estimated": false })));
+        };
+        let est =
+            crate::estimate::Estimator::restore(stored.snapshot).map_err(ApiError::internal)?;
+        let profile: Vec<serde_json::Value> = est
+            .profile()
+            .iter()
+            .map(|p| {
+                serde_json::json!({
+                    "depth": p.depth,
+                    "theta": p.theta_mean,
+                    "theta_sd": p.theta_sd,
+                    "low": p.theta_mean - 2.0 * p.theta_sd,
+                    "high": p.theta_mean + 2.0 * p.theta_sd,
+                })
+            })
+            .collect();
+        let parameters: Vec<serde_json::Value> = est
+            .parameters()
+            .iter()
+            .map(
+                |p| serde_json::json!({"name": p.name, "unit": p.unit, "mean": p.mean, "sd": p.sd}),
+            )
+            .collect();
+        Ok(Json(serde_json::json!({
+            "estimated": true,
+            "time": stored.time,
+            "prior": est.prior().describe(),
+            "profile": profile,
+            "parameters": parameters,
+            "innovations": est.last_update().map(|u| u.innovations.clone()).unwrap_or_default(),
+            "resets": stored.resets,
+            "members": est.settings().members,
+        })))
     })
     .await
 }

@@ -35,8 +35,19 @@ pub struct CycleInputs {
     pub forecast: Option<Forecast>,
     /// A simulated field's scenario and day zero (its past rain is known).
     pub scenario: Option<(Scenario, DateTime<Utc>)>,
+    /// The field's state estimate, when it has one.
+    pub estimate: Option<EstimateView>,
     /// Degraded flags raised while loading (e.g. simulation-failed).
     pub degraded: Vec<String>,
+}
+
+/// What a cycle uses of the state estimate: the mean heads (top first) and
+/// the estimated soil of a column `depth` deep.
+#[derive(Debug, Clone)]
+pub struct EstimateView {
+    pub heads: Vec<f64>,
+    pub soil: VanGenuchten,
+    pub depth: f64,
 }
 
 impl CycleInputs {
@@ -162,23 +173,42 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     let solution = match (current, spec.model) {
         (None, _) => None,
         (Some(theta), ModelKind::Richards) => {
-            // the controller sees what a real field gives: measurements,
-            // never a simulated plant's true state (the column starts in
-            // equilibrium with the measured θ)
-            let soil = spec.soil.parameters().unwrap_or(VanGenuchten::SANDY_LOAM);
-            let head = soil.pressure_head_at(theta.clamp(
-                soil.residual_water_content + 1e-6,
-                soil.saturated_water_content - 1e-6,
-            ));
-            match Plant::new(FieldSettings {
-                soil,
-                crop: spec.crop(),
-                initial_head: head,
-                sampling_time: period,
-                ..FieldSettings::default()
-            }) {
-                Ok(plant) => {
-                    let mut model = RichardsModel::new(&plant, &weather);
+            // the controller sees what a real field gives: it starts from
+            // the state estimate with the estimated soil, or (no estimate
+            // yet) from the column in equilibrium with the measured θ in the
+            // declared soil; never from a simulated plant's true state
+            let model = match &inputs.estimate {
+                Some(e) => RichardsModel::from_state(
+                    e.soil,
+                    spec.crop(),
+                    e.depth,
+                    e.heads.clone(),
+                    &weather,
+                    period,
+                )
+                .map_err(|e| e.to_string()),
+                None => {
+                    let soil = spec.soil.parameters().unwrap_or(VanGenuchten::SANDY_LOAM);
+                    let head = soil.pressure_head_at(theta.clamp(
+                        soil.residual_water_content + 1e-6,
+                        soil.saturated_water_content - 1e-6,
+                    ));
+                    Plant::new(FieldSettings {
+                        soil,
+                        crop: spec.crop(),
+                        initial_head: head,
+                        sampling_time: period,
+                        ..FieldSettings::default()
+                    })
+                    .map(|plant| RichardsModel::new(&plant, &weather))
+                }
+            };
+            match model {
+                Ok(mut model) => {
+                    if let Some(e) = &inputs.estimate {
+                        mpc.settings.theta_r = e.soil.residual_water_content;
+                        mpc.settings.theta_s = e.soil.saturated_water_content;
+                    }
                     Some(mpc.solve(&mut model as &mut dyn PredictionModel))
                 }
                 Err(e) => {
@@ -401,6 +431,7 @@ mod tests {
             measurements: Vec::new(),
             forecast: None,
             scenario: None,
+            estimate: None,
             degraded: Vec::new(),
         }
     }

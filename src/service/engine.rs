@@ -8,19 +8,37 @@ use chrono::{DateTime, TimeDelta, Utc};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::sim::{PlantState, SimulatedPlant, scenario_forecast};
+use crate::sim::{PlantState, SCENARIO_STEP, SimulatedPlant, scenario_forecast};
 use crate::surrogate::ModelFile;
 use crate::surrogate::evaluate::WINDOW;
 use crate::weather::WeatherStep;
 
-use super::cycle::{BIAS_PERIOD, CycleInputs, climatology, decide};
+use super::cycle::{BIAS_PERIOD, CycleInputs, EstimateView, climatology, decide};
 use super::store::{Sensors, Store, StoreError};
 use super::wire::{Actuator, Field, Forecast, Setpoint};
+use crate::estimate::{
+    EstimateError, Estimator, EstimatorSettings, EstimatorSnapshot, InitialGuess, Prior,
+    Sensor as EstimatedSensor,
+};
 
 /// The surrogates, loaded once.
 pub struct Models {
     pub two_layer: ModelFile,
     pub lstm: ModelFile,
+}
+
+fn seconds(d: TimeDelta) -> f64 {
+    d.num_milliseconds() as f64 / 1000.0
+}
+
+/// A field's stored state estimate: the estimator's snapshot, the clock
+/// time it has reached, and how often it was reset.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct StoredEstimate {
+    pub time: DateTime<Utc>,
+    pub snapshot: EstimatorSnapshot,
+    #[serde(default)]
+    pub resets: u64,
 }
 
 /// Shared state of the work: storage, models, the simulated plants.
@@ -233,8 +251,163 @@ impl Engine {
             measurements,
             forecast: self.store.latest_forecast(field.id)?,
             scenario,
+            estimate: None,
             degraded: Vec::new(),
         })
+    }
+
+    /// The estimator of a new field: the prior of its declared soil (a
+    /// texture, or given parameters), its sensors, members started from its
+    /// first reading.
+    fn new_estimator(&self, field: &Field, first: f64) -> Result<Estimator, String> {
+        let prior = match &field.spec.soil {
+            super::wire::SoilSpec::Preset(name) => Prior::Texture(
+                name.parse::<crate::soil::Texture>()
+                    .map_err(|e| e.to_string())?,
+            ),
+            soil => Prior::Soil(soil.parameters()?),
+        };
+        let sensors = field
+            .spec
+            .effective_sensors()
+            .into_iter()
+            .map(|s| EstimatedSensor {
+                id: s.id,
+                depth: s.depth,
+                // the filter needs a positive observation error
+                noise: s.noise.max(0.005),
+            })
+            .collect();
+        Estimator::new(
+            prior,
+            field.spec.crop(),
+            sensors,
+            InitialGuess::Reading(first),
+            EstimatorSettings {
+                seed: (field.id as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+                ..EstimatorSettings::default()
+            },
+        )
+    }
+
+    /// Brings the field's state estimate up to `now`: restored from
+    /// storage (or started from the first reading), then, for every time a
+    /// reading was taken since, a forecast over the interval (the
+    /// irrigation in force; the scenario's weather for a simulated field,
+    /// else the climatology) and the update with that time's readings of
+    /// every sensor. Readings older than the estimate are not assimilated.
+    /// A diverged estimator is reset to its prior and flagged
+    /// `estimator-reset`. Stores the result; returns what the cycle uses.
+    pub fn estimate(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+    ) -> Result<(Option<EstimateView>, Vec<String>), EngineError> {
+        let mut flags = Vec::new();
+        let period = field.spec.control_period_s;
+        let stored: Option<StoredEstimate> = self
+            .store
+            .estimate(field.id)?
+            .and_then(|body| serde_json::from_str(&body).ok());
+        let too_old = |t: DateTime<Utc>| seconds(now - t) > self.max_catch_up_s.max(period);
+        let (mut est, mut clock, mut resets) = match stored
+            .filter(|s| !too_old(s.time))
+            .and_then(|s| Some((Estimator::restore(s.snapshot).ok()?, s.time, s.resets)))
+        {
+            Some(found) => found,
+            None => {
+                // start from the first primary reading within the catch-up span
+                let from = now - TimeDelta::milliseconds((self.max_catch_up_s * 1e3) as i64);
+                let first = self
+                    .store
+                    .measurements(field.id, Some(from), Some(now), 1, Sensors::Primary)?
+                    .into_iter()
+                    .next();
+                let Some(first) = first else {
+                    return Ok((None, flags));
+                };
+                let est = self
+                    .new_estimator(field, first.theta)
+                    .map_err(|e| EngineError::Plant(field.id, e))?;
+                (est, first.time - TimeDelta::milliseconds(1), 0)
+            }
+        };
+        let readings = self.store.measurements(
+            field.id,
+            Some(clock + TimeDelta::milliseconds(1)),
+            Some(now),
+            100_000,
+            Sensors::All,
+        )?;
+        let setpoints =
+            self.store
+                .setpoints(field.id, Some(clock - TimeDelta::days(2)), None, 10_000)?;
+        let scenario = match (&field.spec.actuator, field.spec.simulation) {
+            (Actuator::Simulated, Some(sim)) => self.plant(field)?.map(|p| {
+                (
+                    sim.scenario,
+                    p.lock().unwrap_or_else(|e| e.into_inner()).day_zero(),
+                )
+            }),
+            _ => None,
+        };
+        let primary = field.spec.effective_sensors()[0].id.clone();
+        let mut i = 0;
+        while i < readings.len() {
+            let t = readings[i].time;
+            let group: Vec<&super::wire::Measurement> =
+                readings[i..].iter().take_while(|m| m.time == t).collect();
+            i += group.len();
+            let mut outcome: Result<(), EstimateError> = Ok(());
+            while clock < t && outcome.is_ok() {
+                let dt = seconds(t - clock).min(period);
+                let rate = setpoints
+                    .iter()
+                    .rev()
+                    .find(|s| s.valid_from <= clock && clock < s.valid_until)
+                    .map_or(0.0, |s| s.rate);
+                let weather = match scenario {
+                    Some((sc, d0)) => crate::sim::scenario_weather(sc, d0, clock),
+                    None => climatology(clock, SCENARIO_STEP),
+                };
+                outcome = est.predict(weather.forcing(rate, SCENARIO_STEP), dt);
+                clock += TimeDelta::milliseconds((dt * 1e3) as i64);
+            }
+            clock = t;
+            let values: Vec<(usize, f64)> = group
+                .iter()
+                .filter_map(|m| {
+                    let id = m.sensor.as_deref().unwrap_or(&primary);
+                    est.sensor_index(id).map(|k| (k, m.theta))
+                })
+                .collect();
+            if outcome.is_ok() && !values.is_empty() {
+                outcome = est.update(&values).map(|_| ());
+            }
+            if let Err(e) = outcome {
+                tracing::warn!(field = field.id, error = %e, "state estimate reset to its prior");
+                est.reset_to_prior();
+                resets += 1;
+                if !flags.iter().any(|f| f == "estimator-reset") {
+                    flags.push("estimator-reset".into());
+                }
+            }
+        }
+        let body = serde_json::to_string(&StoredEstimate {
+            time: clock,
+            snapshot: est.snapshot(),
+            resets,
+        })
+        .map_err(StoreError::from)?;
+        self.store.put_estimate(field.id, &body)?;
+        Ok((
+            Some(EstimateView {
+                heads: est.mean_heads(),
+                soil: est.soil(),
+                depth: est.settings().depth,
+            }),
+            flags,
+        ))
     }
 
     /// One control cycle: a simulated field's plant and weather service
@@ -256,6 +429,9 @@ impl Engine {
             self.simulated_forecast(field, now, n)?;
         }
         let mut inputs = self.load(field, now)?;
+        let (estimate, estimate_flags) = self.estimate(field, now)?;
+        flags.extend(estimate_flags);
+        inputs.estimate = estimate;
         inputs.degraded = flags;
         let setpoint = decide(&inputs, &self.models, &self.cancel);
         self.store.add_setpoint(&setpoint)?;

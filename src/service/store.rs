@@ -54,6 +54,10 @@ const MIGRATIONS: &[&str] = &[
     // sensor's (stored with no id), any that would collide keep their id
     "ALTER TABLE measurements ADD COLUMN raw REAL;
      UPDATE OR IGNORE measurements SET sensor = NULL WHERE sensor IS NOT NULL;",
+    // a field's state estimate (the estimator's snapshot and its clock time)
+    "CREATE TABLE estimates (
+         field_id INTEGER PRIMARY KEY REFERENCES fields(id) ON DELETE CASCADE,
+         body TEXT NOT NULL);",
 ];
 
 /// A storage operation failed.
@@ -502,6 +506,29 @@ impl Store {
         self.with(|c| {
             c.execute(
                 "INSERT INTO simulations(field_id, body) VALUES (?1, ?2)
+                 ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
+                params![field, body],
+            )?;
+            Ok(())
+        })
+    }
+
+    /// A field's stored state estimate (JSON).
+    pub fn estimate(&self, field: i64) -> Result<Option<String>, StoreError> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT body FROM estimates WHERE field_id = ?1",
+                [field],
+                |r| r.get(0),
+            )
+            .optional()?)
+        })
+    }
+
+    pub fn put_estimate(&self, field: i64, body: &str) -> Result<(), StoreError> {
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO estimates(field_id, body) VALUES (?1, ?2)
                  ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
                 params![field, body],
             )?;
