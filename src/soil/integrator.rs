@@ -21,6 +21,17 @@
 //! saturated cell (C = 0) starts to drain. A one-step method needs no restart
 //! when the forcing jumps at a sampling boundary.
 //!
+//! Two paths solve the stages of a step attempt. The fast one is plain
+//! Newton in the heads from an extrapolated guess, to |R| ≤ 1e-13 in the last
+//! stage, with the Thomas algorithm. Only if one of its stages fails is the
+//! same attempt redone on the robust path (semismooth Newton in the
+//! coordinates of `Coordinates` near saturation, a watchdog, a pivoting
+//! solver, a looser tolerance with the last stage projected to exact
+//! conservation), which the next few attempts then take directly. The fast
+//! path is what the coarse textures and all unponded runs need, at their old
+//! cost; the robust one gets ponded, saturated columns of the finer textures
+//! through the cusp of K at h = 0.
+//!
 //! Why not diffsol: `benches/integrator.rs` runs the same column through
 //! diffsol's BDF (the DAE of [`super::diffsol_dae`]); it fails on a column
 //! wetting up to saturation and is several times slower on the moderate case.
@@ -192,8 +203,12 @@ pub struct IntegratorStatistics {
     pub steps: usize,
     /// Steps rejected by the error test.
     pub error_test_failures: usize,
-    /// Steps abandoned because a stage's Newton iteration did not converge.
+    /// Steps abandoned because a stage's Newton iteration did not converge
+    /// on the robust path (see [`Integrator`]'s two paths).
     pub newton_failures: usize,
+    /// Step attempts whose fast path failed and that were redone on the
+    /// robust path with the same step size.
+    pub fallbacks: usize,
     /// Newton iterations (each one tridiagonal solve).
     pub newton_iterations: usize,
     /// Calls of [`Integrator::advance`].
@@ -216,6 +231,13 @@ pub struct ColumnState {
 /// depend on it (the last stage is projected, see `try_step`).
 const NEWTON_FRACTION: f64 = 0.02;
 const MAX_NEWTON_ITERATIONS: usize = 25;
+/// The fast path's Newton residuals [m³/m³ of stored water]: the last stage
+/// to round-off (it closes the water balance without projection), the inner
+/// stages far below the error tolerance (they only perturb the solution).
+const NEWTON_TOLERANCE: f64 = 1e-13;
+const STAGE_TOLERANCE: f64 = 1e-10;
+/// Step attempts that go straight to the robust path after the fast path failed.
+const ROBUST_STREAK: usize = 20;
 /// Cells with C below this multiple of Ss keep their heads in the projection
 /// of the last stage.
 const PROJECTION_CAPACITY: f64 = 100.0;
@@ -289,6 +311,10 @@ struct Workspace {
     /// Per cell, the side of the kink its Newton derivative is taken on.
     side: Vec<Side>,
     solver: Tridiagonal,
+    /// Scratch of the Thomas algorithm (the fast path).
+    scratch: Vec<f64>,
+    /// Step attempts left that go straight to the robust path.
+    robust_streak: usize,
     /// Kept only while tangents are propagated: diag(C + Ss) at the start of
     /// the step, and per stage the tridiagonal ∂F/∂H, diag(C + Ss) and
     /// ∂F_0/∂(irrigation) (1/dz while the top face takes all the supply).
@@ -317,6 +343,8 @@ impl Workspace {
             worst_cell: None,
             side: vec![Side::BySign; n],
             solver: Tridiagonal::new(n),
+            scratch: z.clone(),
+            robust_streak: 0,
             keep_jacobians: false,
             start_capacity: z.clone(),
             stage_lower: std::array::from_fn(|_| z.clone()),
@@ -519,8 +547,26 @@ impl Integrator {
     }
 
     /// Tries one step of size `dt` from `heads`; on success the new heads are in
-    /// `work.trial` and the stage rates in `work.stage_*`.
+    /// `work.trial` and the stage rates in `work.stage_*`. The fast path
+    /// first; if one of its stages' Newton fails, the same step again on the
+    /// robust path, which the next [`ROBUST_STREAK`] attempts then take directly.
     fn try_step(&mut self, heads: &[f64], forcing: &Forcing, dt: f64) -> Step {
+        if self.work.robust_streak == 0 {
+            match self.try_step_on(Path::Fast, heads, forcing, dt) {
+                Step::NewtonFailed => {
+                    self.statistics.fallbacks += 1;
+                    self.work.robust_streak = ROBUST_STREAK;
+                }
+                step => return step,
+            }
+        } else {
+            self.work.robust_streak -= 1;
+        }
+        self.try_step_on(Path::Robust, heads, forcing, dt)
+    }
+
+    /// One step attempt on the given path.
+    fn try_step_on(&mut self, path: Path, heads: &[f64], forcing: &Forcing, dt: f64) -> Step {
         let n = self.column.cells();
         let soil = *self.column.soil();
         let ss = soil.specific_storage;
@@ -544,14 +590,41 @@ impl Integrator {
                     w.known[i] = known;
                 }
             }
-            // Starting guess: the previous stage's heads. (Extrapolating the
-            // stored water through 1/(C + Ss) throws a saturated cell, C = 0,
-            // metres away from its root.)
-            let tolerance = self.newton_tolerance();
-            if !self.solve_stage(forcing, GAMMA * dt, tolerance) {
+            let solved = match path {
+                Path::Fast => {
+                    // Starting guess: from the previous stage's heads, the step
+                    // in stored water that the stage equation asks for, through
+                    // the capacity. Only the last stage's residual enters the
+                    // water balance.
+                    if stage > 0 {
+                        let w = &mut self.work;
+                        let prev = &w.stage_rates[stage - 1];
+                        for i in 0..n {
+                            let s = &w.eval.states[i];
+                            let water = s.water_content + ss * w.trial[i];
+                            let target = w.known[i] + GAMMA * dt * prev[i];
+                            w.trial[i] += (target - water) / (s.capacity + ss);
+                        }
+                    }
+                    let tolerance = if stage + 1 == STAGES {
+                        NEWTON_TOLERANCE
+                    } else {
+                        STAGE_TOLERANCE
+                    };
+                    self.solve_stage_fast(forcing, GAMMA * dt, tolerance)
+                }
+                Path::Robust => {
+                    // Starting guess: the previous stage's heads. (Extrapolating
+                    // the stored water through 1/(C + Ss) throws a saturated
+                    // cell, C = 0, metres away from its root.)
+                    let tolerance = self.newton_tolerance();
+                    self.solve_stage(forcing, GAMMA * dt, tolerance)
+                }
+            };
+            if !solved {
                 return Step::NewtonFailed;
             }
-            if stage + 1 == STAGES {
+            if path == Path::Robust && stage + 1 == STAGES {
                 // Newton stops at a residual far below the error tolerance but
                 // not at round-off. The new stored water is what the stage
                 // equation gives for the rates at the solution, wⁿ⁺¹ = known +
@@ -587,7 +660,7 @@ impl Integrator {
                     w.trial[i] = soil.pressure_head_from_storage(target);
                 }
             }
-            if self.work.keep_jacobians {
+            if path == Path::Robust && self.work.keep_jacobians {
                 // the tangents need ∂F/∂H in the heads (Newton's may be in ψ)
                 let w = &mut self.work;
                 let rates = w.eval.storage.clone();
@@ -704,6 +777,72 @@ impl Integrator {
             df[0] += gain;
         }
         tangent.copy_from_slice(&s);
+    }
+
+    /// The fast path's stage solve: Newton in the heads with a backtracking
+    /// line search on max|R|, the Thomas algorithm for the tridiagonal system.
+    /// On success `work.eval` holds the evaluation at the solution.
+    fn solve_stage_fast(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
+        let n = self.column.cells();
+        let ss = self.column.soil().specific_storage;
+        let column = self.column;
+        let residual = |w: &mut Workspace| -> f64 {
+            column.evaluate(&w.trial, forcing, &mut w.eval, Derivatives::Included);
+            let mut norm = 0.0f64;
+            for i in 0..n {
+                let water = w.eval.states[i].water_content + ss * w.trial[i];
+                w.residual[i] = water - w.known[i] - gamma_dt * w.eval.storage[i];
+                norm = norm.max(w.residual[i].abs());
+            }
+            if norm.is_finite() {
+                norm
+            } else {
+                f64::INFINITY
+            }
+        };
+        let w = &mut self.work;
+        let mut norm = residual(w);
+        let mut iterations = 0;
+        while norm > tolerance {
+            if iterations == MAX_NEWTON_ITERATIONS || !norm.is_finite() {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            iterations += 1;
+            self.statistics.newton_iterations += 1;
+            // (diag(C + Ss) − γΔt·T)·δ = R, T tridiagonal; then H ← H − λ·δ.
+            let e = &w.eval;
+            let ok = solve_thomas(
+                |i| -gamma_dt * e.lower[i],
+                |i| e.states[i].capacity + ss - gamma_dt * e.diagonal[i],
+                |i| -gamma_dt * e.upper[i],
+                &w.residual,
+                &mut w.update,
+                &mut w.scratch,
+            );
+            if !ok {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            w.base.copy_from_slice(&w.trial);
+            let mut lambda = 1.0;
+            loop {
+                for i in 0..n {
+                    w.trial[i] = w.base[i] - lambda * w.update[i];
+                }
+                let next = residual(w);
+                if next <= tolerance || next < (1.0 - 1e-4 * lambda) * norm {
+                    norm = next;
+                    break;
+                }
+                lambda *= 0.5;
+                if lambda < 1e-12 {
+                    w.worst_cell = largest_entry(&w.residual);
+                    return false;
+                }
+            }
+        }
+        true
     }
 
     /// Newton's stopping residual, [`NEWTON_FRACTION`] of the error scale at saturation.
@@ -838,6 +977,18 @@ impl Integrator {
     }
 }
 
+/// How a step attempt solves its stages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Path {
+    /// Newton in the heads from an extrapolated guess, to round-off in the
+    /// last stage, with the Thomas algorithm: cheap, and enough wherever the
+    /// residual is smooth (no cell at the cusp of K at saturation).
+    Fast,
+    /// Semismooth Newton in the coordinates of [`Coordinates`] with a
+    /// watchdog, a pivoting solver and the projected last stage.
+    Robust,
+}
+
 /// Which one-sided derivative a cell at the kink h = 0 takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Side {
@@ -953,6 +1104,38 @@ fn largest_entry(values: &[f64]) -> Option<usize> {
         }
     }
     best.map(|(i, _)| i)
+}
+
+/// Solves the tridiagonal system with sub-diagonal `a(i)` (row i, column i−1),
+/// diagonal `b(i)` and super-diagonal `c(i)` by the Thomas algorithm (the
+/// fast path: its Newton matrices are diagonally dominant away from the cusp).
+/// Returns false if a pivot vanishes or is not finite.
+fn solve_thomas(
+    a: impl Fn(usize) -> f64,
+    b: impl Fn(usize) -> f64,
+    c: impl Fn(usize) -> f64,
+    rhs: &[f64],
+    x: &mut [f64],
+    scratch: &mut [f64],
+) -> bool {
+    let n = rhs.len();
+    let mut pivot = b(0);
+    if pivot.abs() < 1e-300 || !pivot.is_finite() {
+        return false;
+    }
+    x[0] = rhs[0] / pivot;
+    for i in 1..n {
+        scratch[i] = c(i - 1) / pivot;
+        pivot = b(i) - a(i) * scratch[i];
+        if pivot.abs() < 1e-300 || !pivot.is_finite() {
+            return false;
+        }
+        x[i] = (rhs[i] - a(i) * x[i - 1]) / pivot;
+    }
+    for i in (0..n - 1).rev() {
+        x[i] -= scratch[i + 1] * x[i + 1];
+    }
+    true
 }
 
 /// Tridiagonal solver by Gaussian elimination with partial pivoting (the
