@@ -238,3 +238,226 @@ fn ill_posed_soils_are_refused_naming_the_parameter() {
     .unwrap();
     assert!(e.contains("initial head"), "{e}");
 }
+
+/// A 60-step run at the given tolerances and the default work limits: the
+/// water content of every cell after every step (as far as it got), the
+/// error if it stopped, the wall time and the integrator's counters.
+fn trajectory(
+    texture: Texture,
+    weather: &WeatherSeries,
+    s: Schedule,
+    tolerances: rootzone::soil::Tolerances,
+) -> (
+    Vec<Vec<f64>>,
+    Option<IntegrationError>,
+    std::time::Duration,
+    rootzone::soil::IntegratorStatistics,
+) {
+    let mut field = Field::new(FieldSettings {
+        soil: texture.parameters(),
+        tolerances,
+        ..FieldSettings::default()
+    })
+    .expect("a texture is a valid soil");
+    let mut thetas = Vec::with_capacity(STEPS);
+    let start = cpu_time();
+    let mut error = None;
+    for k in 0..STEPS {
+        if let Err(e) = field.step(forcing(weather, s, k)) {
+            error = Some(e);
+            break;
+        }
+        thetas.push(field.water_contents());
+    }
+    (
+        thetas,
+        error,
+        cpu_time() - start,
+        field.integrator_statistics(),
+    )
+}
+
+/// CPU time of this thread (Linux: `clock_gettime(CLOCK_THREAD_CPUTIME_ID)`),
+/// less sensitive to a busy machine than the wall clock; the wall clock elsewhere.
+fn cpu_time() -> std::time::Duration {
+    #[cfg(target_os = "linux")]
+    {
+        #[repr(C)]
+        struct Timespec {
+            seconds: i64,
+            nanoseconds: i64,
+        }
+        unsafe extern "C" {
+            fn clock_gettime(clock: i32, time: *mut Timespec) -> i32;
+        }
+        let mut t = Timespec {
+            seconds: 0,
+            nanoseconds: 0,
+        };
+        // SAFETY: clock_gettime writes one timespec; 3 is CLOCK_THREAD_CPUTIME_ID.
+        if unsafe { clock_gettime(3, &mut t) } == 0 {
+            return std::time::Duration::new(t.seconds as u64, t.nanoseconds as u32);
+        }
+    }
+    static START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    START.get_or_init(std::time::Instant::now).elapsed()
+}
+
+/// The whole matrix with run times (CPU time of the thread, the fastest of a
+/// few repeats) and work counters, for the record:
+/// `cargo test --release --test textures matrix_timings -- --ignored --nocapture`
+/// (`TEXTURE=loam` for one texture).
+#[test]
+#[ignore]
+fn matrix_timings() {
+    let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
+    let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").unwrap();
+    let only: Option<String> = std::env::var("TEXTURE").ok();
+    let mut stopped = 0;
+    for texture in Texture::ALL {
+        if only.as_ref().is_some_and(|t| *t != texture.to_string()) {
+            continue;
+        }
+        let mut times = Vec::new();
+        for (name, weather) in [("dry", &dry), ("rain", &rain)] {
+            for s in Schedule::ALL {
+                let (_, e, mut t, st) = trajectory(texture, weather, s, Default::default());
+                let mut total = t;
+                for _ in 0..4 {
+                    if total.as_secs_f64() > 0.2 {
+                        break;
+                    }
+                    let again = trajectory(texture, weather, s, Default::default()).2;
+                    total += again;
+                    t = t.min(again);
+                }
+                let ms = t.as_secs_f64() * 1e3;
+                times.push(ms);
+                if e.is_some() {
+                    stopped += 1;
+                }
+                eprintln!(
+                    "{texture:>16} {name:>4} {:<16} {ms:8.2} ms {} steps {:5} err {:4} \
+                     newton-fail {:4} fallback {:4} newton {:6}",
+                    format!("{s:?}"),
+                    if e.is_some() { "STOP" } else { "ok  " },
+                    st.steps,
+                    st.error_test_failures,
+                    st.newton_failures,
+                    st.fallbacks,
+                    st.newton_iterations
+                );
+            }
+        }
+        times.sort_by(f64::total_cmp);
+        eprintln!(
+            "== {texture}: median {:.2} ms, slowest {:.2} ms",
+            0.5 * (times[5] + times[6]),
+            times[11]
+        );
+    }
+    eprintln!("{stopped} stopped");
+}
+
+/// Where the runs that stop stop: the error and the heads at the start of
+/// the sampling step that failed (`CASE=clay/dry/2` for one, the index into
+/// [`Schedule::ALL`]).
+#[test]
+#[ignore]
+fn where_runs_stop() {
+    let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
+    let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").unwrap();
+    let case = std::env::var("CASE").unwrap_or("clay/dry/2".into());
+    let parts: Vec<&str> = case.split('/').collect();
+    let texture = Texture::ALL
+        .into_iter()
+        .find(|t| t.to_string() == parts[0])
+        .unwrap();
+    let weather = if parts[1] == "dry" { &dry } else { &rain };
+    let s = Schedule::ALL[parts[2].parse::<usize>().unwrap()];
+    let mut field = Field::new(FieldSettings {
+        soil: texture.parameters(),
+        ..FieldSettings::default()
+    })
+    .unwrap();
+    for k in 0..STEPS {
+        let before = field.pressure_heads().to_vec();
+        let st0 = field.integrator_statistics();
+        let f = forcing(weather, s, k);
+        let r = field.step(f);
+        let st = field.integrator_statistics();
+        eprintln!(
+            "step {k:2}: supply {:.2e} steps {:4} err {:3} newton-fail {:4} fallback {:3} newton {:5} h0 {:+.3e} h25 {:+.3e}",
+            f.irrigation + f.precipitation,
+            st.steps - st0.steps,
+            st.error_test_failures - st0.error_test_failures,
+            st.newton_failures - st0.newton_failures,
+            st.fallbacks - st0.fallbacks,
+            st.newton_iterations - st0.newton_iterations,
+            field.pressure_heads()[0],
+            field.pressure_heads()[25],
+        );
+        if let Err(e) = r {
+            eprintln!("{e}");
+            eprintln!(
+                "heads before: {:?}",
+                before
+                    .iter()
+                    .map(|h| format!("{h:+.3e}"))
+                    .collect::<Vec<_>>()
+            );
+            break;
+        }
+    }
+}
+
+/// The first sampling step of a case in chunks of `CHUNK` seconds (default
+/// 60), printing the heads before the chunk that fails.
+#[test]
+#[ignore]
+fn where_the_first_step_stops() {
+    let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
+    let case = std::env::var("CASE").unwrap_or("clay/dry/2".into());
+    let parts: Vec<&str> = case.split('/').collect();
+    let texture = Texture::ALL
+        .into_iter()
+        .find(|t| t.to_string() == parts[0])
+        .unwrap();
+    let s = Schedule::ALL[parts[2].parse::<usize>().unwrap()];
+    let chunk: f64 = std::env::var("CHUNK").map_or(60.0, |c| c.parse().unwrap());
+    let field = Field::new(FieldSettings {
+        soil: texture.parameters(),
+        ..FieldSettings::default()
+    })
+    .unwrap();
+    let mut integrator = field.integrator().clone();
+    let mut state = field.state().clone();
+    let f = forcing(&dry, s, 0);
+    let mut t = 0.0;
+    while t < STEP_SECONDS {
+        let before = state.clone();
+        let st0 = integrator.statistics();
+        let r = integrator.advance(&mut state, t, chunk, f);
+        let st = integrator.statistics();
+        let show = |h: &[f64]| {
+            h.iter()
+                .map(|h| format!("{h:+.2e}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        eprintln!(
+            "t {t:6.0}: steps {:4} newton-fail {:4} fallback {:3} newton {:5} | {}",
+            st.steps - st0.steps,
+            st.newton_failures - st0.newton_failures,
+            st.fallbacks - st0.fallbacks,
+            st.newton_iterations - st0.newton_iterations,
+            show(&state.heads[..12])
+        );
+        if let Err(e) = r {
+            eprintln!("{e}");
+            eprintln!("heads before: {}", show(&before.heads));
+            break;
+        }
+        t += chunk;
+    }
+}

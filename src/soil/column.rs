@@ -84,6 +84,8 @@ pub struct Evaluation {
     pub bottom_gradient: f64,
     /// d(uptake rate)/dh_i.
     pub uptake_gradient: Vec<f64>,
+    /// (dK_i/du_i, dh_i/du_i) the derivatives were taken with ((K', 1) for u = h).
+    chains: Vec<(f64, f64)>,
 }
 
 impl Evaluation {
@@ -99,9 +101,13 @@ impl Evaluation {
             top_gradient: 0.0,
             bottom_gradient: 0.0,
             uptake_gradient: zeros,
+            chains: vec![(0.0, 1.0); cells],
         }
     }
 }
+
+/// Per cell i, from (i, h_i, state_i): (dK_i/du_i, dh_i/du_i) for the unknown u_i.
+pub(super) type Chain<'a> = dyn Fn(usize, f64, &HydraulicState) -> (f64, f64) + 'a;
 
 /// Positions of the water amounts behind the cells in the state vector.
 pub const INFILTRATION: usize = 0;
@@ -183,16 +189,14 @@ impl Column {
     }
 
     /// Infiltration capacity of a ponded surface into the top cell, and its
-    /// derivative with respect to the top cell's head: `K_top·[(0 − h_0)/(dz/2) + 1]`,
+    /// derivative with respect to the top cell's unknown (dK/du = `dk`,
+    /// dh/du = `dh`; with u = h these are K' and 1): `K_top·[(0 − h_0)/(dz/2) + 1]`,
     /// `K_top = (Ks + K(h_0))/2`.
-    fn infiltration_capacity(&self, h: f64, s: &HydraulicState) -> (f64, f64) {
+    fn infiltration_capacity(&self, h: f64, s: &HydraulicState, dk: f64, dh: f64) -> (f64, f64) {
         let half = self.cell_thickness() / 2.0;
         let k_top = 0.5 * (self.soil.saturated_conductivity + s.conductivity);
         let gradient = -h / half + 1.0;
-        (
-            k_top * gradient,
-            0.5 * s.conductivity_derivative * gradient - k_top / half,
-        )
+        (k_top * gradient, 0.5 * dk * gradient - k_top / half * dh)
     }
 
     /// Sink rate at full stress factor, Kc·ET0/z_r [1/s].
@@ -208,6 +212,21 @@ impl Column {
         forcing: &Forcing,
         out: &mut Evaluation,
         derivatives: Derivatives,
+    ) {
+        self.evaluate_in(heads, forcing, out, derivatives, None)
+    }
+
+    /// [`Column::evaluate`] with the derivatives taken with respect to other
+    /// unknowns than the heads: `chain(i, h_i, state_i)` gives (dK_i/du_i,
+    /// dh_i/du_i) for the unknown u_i of cell i (see the integrator's Newton
+    /// coordinates near saturation). The rates are the same.
+    pub(super) fn evaluate_in(
+        &self,
+        heads: &[f64],
+        forcing: &Forcing,
+        out: &mut Evaluation,
+        derivatives: Derivatives,
+        chain: Option<&Chain>,
     ) {
         let n = self.cells;
         debug_assert_eq!(heads.len(), n);
@@ -226,9 +245,22 @@ impl Column {
             out.uptake_gradient.fill(0.0);
         }
         let states = &out.states;
+        // (dK/du, dh/du) of every cell, only where derivatives are wanted
+        let chains = &mut out.chains;
+        if with_derivatives {
+            for i in 0..n {
+                chains[i] = match chain {
+                    Some(c) => c(i, heads[i], &states[i]),
+                    None => (states[i].conductivity_derivative, 1.0),
+                };
+            }
+        }
+        let chains = &out.chains;
+        let dk = |i: usize| chains[i].0;
+        let dh = |i: usize| chains[i].1;
 
         // Top face: infiltration, capped by what a ponded surface can drive in.
-        let (capacity, d_capacity) = self.infiltration_capacity(heads[0], &states[0]);
+        let (capacity, d_capacity) = self.infiltration_capacity(heads[0], &states[0], dk(0), dh(0));
         let q0 = supply.min(capacity);
         out.amounts[INFILTRATION] = q0;
         out.amounts[RUNOFF] = supply - q0;
@@ -247,8 +279,8 @@ impl Column {
                 let k_face = 0.5 * (cur.conductivity + next.conductivity);
                 let gradient = (h - heads[i + 1]) / dz + 1.0;
                 if with_derivatives {
-                    let dq_dhi = 0.5 * cur.conductivity_derivative * gradient + k_face / dz;
-                    let dq_dhj = 0.5 * next.conductivity_derivative * gradient - k_face / dz;
+                    let dq_dhi = 0.5 * dk(i) * gradient + k_face / dz * dh(i);
+                    let dq_dhj = 0.5 * dk(i + 1) * gradient - k_face / dz * dh(i + 1);
                     out.diagonal[i] -= dq_dhi / dz;
                     out.upper[i] -= dq_dhj / dz;
                     out.lower[i + 1] += dq_dhi / dz;
@@ -257,13 +289,14 @@ impl Column {
                 k_face * gradient
             } else {
                 if with_derivatives {
-                    out.bottom_gradient = cur.conductivity_derivative;
-                    out.diagonal[i] -= cur.conductivity_derivative / dz;
+                    out.bottom_gradient = dk(i);
+                    out.diagonal[i] -= dk(i) / dz;
                 }
                 cur.conductivity
             };
             let s = if i < roots {
                 let (stress, d_stress) = self.crop.stress.stress_and_derivative(h);
+                let d_stress = d_stress * dh(i);
                 if with_derivatives {
                     out.diagonal[i] -= d_stress * sink;
                     out.uptake_gradient[i] = d_stress * sink * dz;

@@ -51,8 +51,11 @@ pub struct HydraulicState {
     pub conductivity_derivative: f64,
 }
 
-/// Smallest `a = α|h|` used in derivatives: dK/dh grows like a^(n−2), without bound
-/// for n < 2 as h → 0⁻. Below this the derivative is evaluated at the floor.
+/// Smallest `a = α|h|` used in dK/dh: it grows like a^(n−2), without bound for
+/// n < 2 as h → 0⁻. Below this dK/dh is evaluated at the floor; Se, θ, C and K
+/// are always evaluated at the true a. (Flooring a in K too made K jump at
+/// h = 0 by 1 − (1 − A_FLOOR^(n−1))² ≈ 2·A_FLOOR^(n−1): 16 % for n = 1.09, on
+/// which Newton cycled, see the integrator.)
 const A_FLOOR: f64 = 1e-12;
 
 /// |θ(h) + Ss·h − w| at which the inverse w → h is accepted.
@@ -161,8 +164,40 @@ impl VanGenuchten {
                 conductivity_derivative: 0.0,
             };
         }
+        let a = -self.alpha * pressure_head;
+        if a == 0.0 {
+            // h < 0 so small that α·h underflows: saturated to round-off
+            return self.state(0.0);
+        }
+        let (se, dse, b, db) = self.kernel(a);
+        let sqrt_se = se.sqrt();
+        let ks = self.saturated_conductivity;
+        let conductivity = ks * sqrt_se * b * b;
+        let slope = |se: f64, dse: f64, b: f64, db: f64| {
+            if se > 0.0 {
+                ks * (0.5 * dse / se.sqrt() * b * b + se.sqrt() * 2.0 * b * db)
+            } else {
+                0.0
+            }
+        };
+        let conductivity_derivative = if a < A_FLOOR {
+            let (se, dse, b, db) = self.kernel(A_FLOOR);
+            slope(se, dse, b, db)
+        } else {
+            slope(se, dse, b, db)
+        };
+        HydraulicState {
+            effective_saturation: se,
+            water_content: self.residual_water_content + self.range() * se,
+            capacity: self.range() * dse,
+            conductivity,
+            conductivity_derivative,
+        }
+    }
+
+    /// Se, dSe/dh, B = 1 − (1 − Se^(1/m))^m and dB/dh at a = α|h| > 0.
+    fn kernel(&self, a: f64) -> (f64, f64, f64, f64) {
         let (n, m, alpha) = (self.n, self.m(), self.alpha);
-        let a = (-alpha * pressure_head).max(A_FLOOR);
         let y = a.powf(n - 1.0); // a^(n−1)
         let x = a * y; // a^n
         let se = (-m * x.ln_1p()).exp();
@@ -175,23 +210,9 @@ impl VanGenuchten {
         } else {
             -(-m * (1.0 / x).ln_1p()).exp_m1()
         };
-        // dB/dh = m·n·α·a^(n−1)·(1 − B)/(x·(1 + x))
+        // dB/dh = m·n·α·a^(n−1)·(1 − B)/(x·(1 + x)) (only used for a ≥ A_FLOOR)
         let db = m * n * alpha * y * (1.0 - b) / (x * (1.0 + x));
-        let sqrt_se = se.sqrt();
-        let ks = self.saturated_conductivity;
-        let conductivity = ks * sqrt_se * b * b;
-        let conductivity_derivative = if se > 0.0 {
-            ks * (0.5 * dse / sqrt_se * b * b + sqrt_se * 2.0 * b * db)
-        } else {
-            0.0
-        };
-        HydraulicState {
-            effective_saturation: se,
-            water_content: self.residual_water_content + self.range() * se,
-            capacity: self.range() * dse,
-            conductivity,
-            conductivity_derivative,
-        }
+        (se, dse, b, db)
     }
 
     /// Stored water per unit volume, w(h) = θ(h) + Ss·h: the quantity that is conserved.

@@ -21,6 +21,17 @@
 //! saturated cell (C = 0) starts to drain. A one-step method needs no restart
 //! when the forcing jumps at a sampling boundary.
 //!
+//! Two paths solve the stages of a step attempt. The fast one is plain
+//! Newton in the heads from an extrapolated guess, to |R| ≤ 1e-13 in the last
+//! stage, with the Thomas algorithm. Only if one of its stages fails is the
+//! same attempt redone on the robust path (semismooth Newton in the
+//! coordinates of `Coordinates` near saturation, a watchdog, a pivoting
+//! solver, a looser tolerance with the last stage projected to exact
+//! conservation), which the next few attempts then take directly. The fast
+//! path is what the coarse textures and all unponded runs need, at their old
+//! cost; the robust one gets ponded, saturated columns of the finer textures
+//! through the cusp of K at h = 0.
+//!
 //! Why not diffsol: `benches/integrator.rs` runs the same column through
 //! diffsol's BDF (the DAE of [`super::diffsol_dae`]); it fails on a column
 //! wetting up to saturation and is several times slower on the moderate case.
@@ -29,6 +40,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::column::{AMOUNTS, Column, Derivatives, Evaluation, Forcing};
+use super::hydraulics::{HydraulicState, VanGenuchten};
 
 /// Tolerances of the integrator's error control.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -191,8 +203,12 @@ pub struct IntegratorStatistics {
     pub steps: usize,
     /// Steps rejected by the error test.
     pub error_test_failures: usize,
-    /// Steps abandoned because a stage's Newton iteration did not converge.
+    /// Steps abandoned because a stage's Newton iteration did not converge
+    /// on the robust path (see [`Integrator`]'s two paths).
     pub newton_failures: usize,
+    /// Step attempts whose fast path failed and that were redone on the
+    /// robust path with the same step size.
+    pub fallbacks: usize,
     /// Newton iterations (each one tridiagonal solve).
     pub newton_iterations: usize,
     /// Calls of [`Integrator::advance`].
@@ -208,12 +224,29 @@ pub struct ColumnState {
     pub amounts: [f64; AMOUNTS],
 }
 
-/// Residual below which Newton stops [m³/m³ of stored water].
-const NEWTON_TOLERANCE: f64 = 1e-13;
-/// Residual below which Newton stops in the inner stages, whose residuals only
-/// perturb the solution (far below the error tolerance), not the balance.
-const STAGE_TOLERANCE: f64 = 1e-10;
+/// Newton stops when max|R| is below this fraction of the error tolerance's
+/// scale at saturation, absolute + relative·θs (Hairer & Wanner, *Solving ODEs
+/// II*, §IV.8: the iteration error a small fraction of the tolerance). With the
+/// default tolerances that is 8e-8 in stored water; the water balance does not
+/// depend on it (the last stage is projected, see `try_step`).
+const NEWTON_FRACTION: f64 = 0.02;
 const MAX_NEWTON_ITERATIONS: usize = 25;
+/// The fast path's Newton residuals [m³/m³ of stored water]: the last stage
+/// to round-off (it closes the water balance without projection), the inner
+/// stages far below the error tolerance (they only perturb the solution).
+const NEWTON_TOLERANCE: f64 = 1e-13;
+const STAGE_TOLERANCE: f64 = 1e-10;
+/// Step attempts that go straight to the robust path after the fast path failed.
+const ROBUST_STREAK: usize = 20;
+/// Cells with C below this multiple of Ss keep their heads in the projection
+/// of the last stage.
+const PROJECTION_CAPACITY: f64 = 100.0;
+/// Full Newton steps a stage solve may take although they do not reduce the
+/// residual (at most this many, and by at most [`WATCHDOG_GROWTH`]): near
+/// saturation the residual has kinks, at which a descent test on max|R| can
+/// stall a semismooth Newton that converges with full steps.
+const WATCHDOG_STEPS: usize = 5;
+const WATCHDOG_GROWTH: f64 = 1e3;
 /// Smallest step before giving up [s].
 const MIN_STEP: f64 = 1e-8;
 /// First step of the very first call [s].
@@ -267,15 +300,21 @@ struct Workspace {
     stage_amount_rates: [[f64; AMOUNTS]; STAGES],
     /// The known part of the stage equation: wⁿ + Δt·Σ_{j<i} a_ij·F_j.
     known: Vec<f64>,
-    /// Newton iterate, its residual, the update, the last accepted iterate, scratch.
+    /// Newton iterate, its residual, the update, the last accepted iterate.
     trial: Vec<f64>,
     residual: Vec<f64>,
     update: Vec<f64>,
     base: Vec<f64>,
-    scratch: Vec<f64>,
     /// The cell with the largest Newton residual or error estimate at the
     /// last failed attempt.
     worst_cell: Option<usize>,
+    /// Per cell, the side of the kink its Newton derivative is taken on.
+    side: Vec<Side>,
+    solver: Tridiagonal,
+    /// Scratch of the Thomas algorithm (the fast path).
+    scratch: Vec<f64>,
+    /// Step attempts left that go straight to the robust path.
+    robust_streak: usize,
     /// Kept only while tangents are propagated: diag(C + Ss) at the start of
     /// the step, and per stage the tridiagonal ∂F/∂H, diag(C + Ss) and
     /// ∂F_0/∂(irrigation) (1/dz while the top face takes all the supply).
@@ -301,8 +340,11 @@ impl Workspace {
             residual: z.clone(),
             update: z.clone(),
             base: z.clone(),
-            scratch: z.clone(),
             worst_cell: None,
+            side: vec![Side::BySign; n],
+            solver: Tridiagonal::new(n),
+            scratch: z.clone(),
+            robust_streak: 0,
             keep_jacobians: false,
             start_capacity: z.clone(),
             stage_lower: std::array::from_fn(|_| z.clone()),
@@ -505,8 +547,26 @@ impl Integrator {
     }
 
     /// Tries one step of size `dt` from `heads`; on success the new heads are in
-    /// `work.trial` and the stage rates in `work.stage_*`.
+    /// `work.trial` and the stage rates in `work.stage_*`. The fast path
+    /// first; if one of its stages' Newton fails, the same step again on the
+    /// robust path, which the next [`ROBUST_STREAK`] attempts then take directly.
     fn try_step(&mut self, heads: &[f64], forcing: &Forcing, dt: f64) -> Step {
+        if self.work.robust_streak == 0 {
+            match self.try_step_on(Path::Fast, heads, forcing, dt) {
+                Step::NewtonFailed => {
+                    self.statistics.fallbacks += 1;
+                    self.work.robust_streak = ROBUST_STREAK;
+                }
+                step => return step,
+            }
+        } else {
+            self.work.robust_streak -= 1;
+        }
+        self.try_step_on(Path::Robust, heads, forcing, dt)
+    }
+
+    /// One step attempt on the given path.
+    fn try_step_on(&mut self, path: Path, heads: &[f64], forcing: &Forcing, dt: f64) -> Step {
         let n = self.column.cells();
         let soil = *self.column.soil();
         let ss = soil.specific_storage;
@@ -530,26 +590,85 @@ impl Integrator {
                     w.known[i] = known;
                 }
             }
-            // Starting guess: from the previous stage's heads, the step in stored
-            // water that the stage equation asks for, through the capacity.
-            if stage > 0 {
+            let solved = match path {
+                Path::Fast => {
+                    // Starting guess: from the previous stage's heads, the step
+                    // in stored water that the stage equation asks for, through
+                    // the capacity. Only the last stage's residual enters the
+                    // water balance.
+                    if stage > 0 {
+                        let w = &mut self.work;
+                        let prev = &w.stage_rates[stage - 1];
+                        for i in 0..n {
+                            let s = &w.eval.states[i];
+                            let water = s.water_content + ss * w.trial[i];
+                            let target = w.known[i] + GAMMA * dt * prev[i];
+                            w.trial[i] += (target - water) / (s.capacity + ss);
+                        }
+                    }
+                    let tolerance = if stage + 1 == STAGES {
+                        NEWTON_TOLERANCE
+                    } else {
+                        STAGE_TOLERANCE
+                    };
+                    self.solve_stage_fast(forcing, GAMMA * dt, tolerance)
+                }
+                Path::Robust => {
+                    // Starting guess: the previous stage's heads. (Extrapolating
+                    // the stored water through 1/(C + Ss) throws a saturated
+                    // cell, C = 0, metres away from its root.)
+                    let tolerance = self.newton_tolerance();
+                    self.solve_stage(forcing, GAMMA * dt, tolerance)
+                }
+            };
+            if !solved {
+                return Step::NewtonFailed;
+            }
+            if path == Path::Robust && stage + 1 == STAGES {
+                // Newton stops at a residual far below the error tolerance but
+                // not at round-off. The new stored water is what the stage
+                // equation gives for the rates at the solution, wⁿ⁺¹ = known +
+                // γΔt·F(H_s), so that Σ dz·wⁿ⁺¹ − Σ dz·wⁿ is exactly Δt·Σ b_j
+                // times the boundary and sink rates: the water balance closes
+                // to round-off. The heads follow by the inverse of w(h).
+                // A cell whose storage is mostly Ss (saturated or nearly) keeps
+                // its head: there R/Ss would be a pressure of centimetres. Its
+                // residual goes to the cell of largest capacity instead (to
+                // all cells alike if none has any), so that the sum is exact.
                 let w = &mut self.work;
-                let prev = &w.stage_rates[stage - 1];
+                let mut moved = 0.0;
+                let mut sink: Option<usize> = None;
                 for i in 0..n {
-                    let s = &w.eval.states[i];
-                    let water = s.water_content + ss * w.trial[i];
-                    let target = w.known[i] + GAMMA * dt * prev[i];
-                    w.trial[i] += (target - water) / (s.capacity + ss);
+                    let c = w.eval.states[i].capacity;
+                    if c > PROJECTION_CAPACITY * ss {
+                        if sink.is_none_or(|k| c > w.eval.states[k].capacity) {
+                            sink = Some(i);
+                        }
+                    } else {
+                        moved += w.residual[i];
+                    }
+                }
+                for i in 0..n {
+                    let c = w.eval.states[i].capacity;
+                    let target = w.known[i] + GAMMA * dt * w.eval.storage[i];
+                    let target = match sink {
+                        Some(k) if i == k => target - moved,
+                        Some(_) if c <= PROJECTION_CAPACITY * ss => continue,
+                        Some(_) => target,
+                        None => target + (w.residual[i] - moved / n as f64),
+                    };
+                    w.trial[i] = soil.pressure_head_from_storage(target);
                 }
             }
-            // Only the last stage's residual enters the water balance.
-            let tolerance = if stage + 1 == STAGES {
-                NEWTON_TOLERANCE
-            } else {
-                STAGE_TOLERANCE
-            };
-            if !self.solve_stage(forcing, GAMMA * dt, tolerance) {
-                return Step::NewtonFailed;
+            if path == Path::Robust && self.work.keep_jacobians {
+                // the tangents need ∂F/∂H in the heads (Newton's may be in ψ)
+                let w = &mut self.work;
+                let rates = w.eval.storage.clone();
+                let amounts = w.eval.amounts;
+                self.column
+                    .evaluate(&w.trial, forcing, &mut w.eval, Derivatives::Included);
+                w.eval.storage.copy_from_slice(&rates);
+                w.eval.amounts = amounts;
             }
             let w = &mut self.work;
             w.stage_rates[stage].copy_from_slice(&w.eval.storage);
@@ -633,13 +752,12 @@ impl Integrator {
                 &w.stage_capacity[stage],
             );
             let gamma_dt = GAMMA * dt;
-            let ok = solve_tridiagonal(
+            let ok = w.solver.solve(
                 |i| -gamma_dt * lower[i],
                 |i| capacity[i] - gamma_dt * diagonal[i],
                 |i| -gamma_dt * upper[i],
                 &w.known,
                 &mut s,
-                &mut w.scratch,
             );
             if !ok {
                 // the same matrix Newton just factorised: cannot be singular
@@ -661,10 +779,10 @@ impl Integrator {
         tangent.copy_from_slice(&s);
     }
 
-    /// Newton with a backtracking line search on max|R| for one stage:
-    /// w(H) − known − γΔt·F(H) = 0, starting from `work.trial`. On success
-    /// `work.eval` holds the evaluation at the solution.
-    fn solve_stage(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
+    /// The fast path's stage solve: Newton in the heads with a backtracking
+    /// line search on max|R|, the Thomas algorithm for the tridiagonal system.
+    /// On success `work.eval` holds the evaluation at the solution.
+    fn solve_stage_fast(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
         let n = self.column.cells();
         let ss = self.column.soil().specific_storage;
         let column = self.column;
@@ -694,7 +812,7 @@ impl Integrator {
             self.statistics.newton_iterations += 1;
             // (diag(C + Ss) − γΔt·T)·δ = R, T tridiagonal; then H ← H − λ·δ.
             let e = &w.eval;
-            let ok = solve_tridiagonal(
+            let ok = solve_thomas(
                 |i| -gamma_dt * e.lower[i],
                 |i| e.states[i].capacity + ss - gamma_dt * e.diagonal[i],
                 |i| -gamma_dt * e.upper[i],
@@ -703,6 +821,7 @@ impl Integrator {
                 &mut w.scratch,
             );
             if !ok {
+                w.worst_cell = largest_entry(&w.residual);
                 return false;
             }
             w.base.copy_from_slice(&w.trial);
@@ -725,6 +844,254 @@ impl Integrator {
         }
         true
     }
+
+    /// Newton's stopping residual, [`NEWTON_FRACTION`] of the error scale at saturation.
+    fn newton_tolerance(&self) -> f64 {
+        let soil = self.column.soil();
+        NEWTON_FRACTION
+            * (self.tolerances.absolute + self.tolerances.relative * soil.saturated_water_content)
+    }
+
+    /// Semismooth Newton with a backtracking line search on max|R| for one
+    /// stage: w(H) − known − γΔt·F(H) = 0, starting from `work.trial`. On
+    /// success `work.eval` holds the evaluation at the solution.
+    ///
+    /// Near saturation the unknowns are the coordinates of [`Coordinates`],
+    /// in which K is Lipschitz; where the residual has a kink (a cell at
+    /// h = 0, K' = 0 above and K' → ∞ below) the Jacobian takes the side the
+    /// step goes to, a step that crosses the kink stops on it, and a few full
+    /// steps are taken even when they do not reduce max|R| (a watchdog).
+    fn solve_stage(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
+        let n = self.column.cells();
+        let ss = self.column.soil().specific_storage;
+        let column = self.column;
+        let coordinates = Coordinates::new(self.column.soil());
+        let residual = |w: &mut Workspace| -> f64 {
+            let side = &w.side;
+            let chain = |i: usize, h: f64, st: &HydraulicState| coordinates.chain(h, st, side[i]);
+            column.evaluate_in(
+                &w.trial,
+                forcing,
+                &mut w.eval,
+                Derivatives::Included,
+                Some(&chain),
+            );
+            let mut norm = 0.0f64;
+            for i in 0..n {
+                let water = w.eval.states[i].water_content + ss * w.trial[i];
+                w.residual[i] = water - w.known[i] - gamma_dt * w.eval.storage[i];
+                norm = norm.max(w.residual[i].abs());
+            }
+            if norm.is_finite() {
+                norm
+            } else {
+                f64::INFINITY
+            }
+        };
+        let w = &mut self.work;
+        w.side.fill(Side::BySign);
+        let mut norm = residual(w);
+        let mut iterations = 0;
+        let mut watchdog = WATCHDOG_STEPS;
+        while norm > tolerance {
+            if iterations == MAX_NEWTON_ITERATIONS || !norm.is_finite() {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            iterations += 1;
+            self.statistics.newton_iterations += 1;
+            // (∂w/∂u − γΔt·∂F/∂u)·δ = R, tridiagonal; then u ← u − λ·δ. A cell
+            // on a kink whose step leaves it to the other side than the one
+            // its Jacobian was taken on is given that side, and δ solved again
+            // (at most three times).
+            let mut flips = 0;
+            loop {
+                let e = &w.eval;
+                let (trial, side) = (&w.trial, &w.side);
+                let ok = w.solver.solve(
+                    |i| -gamma_dt * e.lower[i],
+                    |i| {
+                        let (_, dh) = coordinates.chain(trial[i], &e.states[i], side[i]);
+                        (e.states[i].capacity + ss) * dh - gamma_dt * e.diagonal[i]
+                    },
+                    |i| -gamma_dt * e.upper[i],
+                    &w.residual,
+                    &mut w.update,
+                );
+                if !ok {
+                    w.worst_cell = largest_entry(&w.residual);
+                    return false;
+                }
+                if flips == 3 || !coordinates.active {
+                    break;
+                }
+                let mut changed = false;
+                for i in 0..n {
+                    if coordinates.coordinate(w.trial[i]) == Some(0.0) {
+                        let to = if w.update[i] > 0.0 {
+                            Side::Below
+                        } else {
+                            Side::Above
+                        };
+                        let now = match w.side[i] {
+                            Side::BySign => Side::Above,
+                            s => s,
+                        };
+                        if to != now {
+                            w.side[i] = to;
+                            changed = true;
+                        }
+                    }
+                }
+                if !changed {
+                    break;
+                }
+                flips += 1;
+                residual(w);
+            }
+            w.base.copy_from_slice(&w.trial);
+            w.side.fill(Side::BySign);
+            let mut lambda = 1.0;
+            loop {
+                for i in 0..n {
+                    w.trial[i] = coordinates.step(w.base[i], lambda * w.update[i]);
+                }
+                let next = residual(w);
+                // the watchdog's full steps are the first few of the solve
+                let full = watchdog > 0 && lambda == 1.0 && next < WATCHDOG_GROWTH * norm;
+                if full {
+                    watchdog -= 1;
+                }
+                if next <= tolerance || next < (1.0 - 1e-4 * lambda) * norm || full {
+                    norm = next;
+                    break;
+                }
+                lambda *= 0.5;
+                if lambda < 1e-12 {
+                    w.worst_cell = largest_entry(&w.residual);
+                    return false;
+                }
+            }
+        }
+        true
+    }
+}
+
+/// How a step attempt solves its stages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Path {
+    /// Newton in the heads from an extrapolated guess, to round-off in the
+    /// last stage, with the Thomas algorithm: cheap, and enough wherever the
+    /// residual is smooth (no cell at the cusp of K at saturation).
+    Fast,
+    /// Semismooth Newton in the coordinates of [`Coordinates`] with a
+    /// watchdog, a pivoting solver and the projected last stage.
+    Robust,
+}
+
+/// Which one-sided derivative a cell at the kink h = 0 takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Side {
+    /// Below (h < 0) or above (h ≥ 0) by the sign of h.
+    BySign,
+    Below,
+    Above,
+}
+
+/// Newton's unknowns near saturation, for n < 2.
+///
+/// For n < 2 the Mualem conductivity has a cusp at saturation: with
+/// a = α|h|, K ≈ Ks·(1 − 2a^(n−1)) as h → 0⁻, so dK/dh ~ a^(n−2) → ∞, while
+/// K = Ks above. In ψ = −a^(n−1) below saturation K is Lipschitz (dK/dψ → 2Ks)
+/// and h, θ are C¹ (dh/dψ → 0); above, the unknown is ψ = α·h. The residual
+/// is then piecewise smooth with a kink at ψ = 0, the setting of semismooth
+/// Newton methods (Qi & Sun 1993, Math. Programming 58, 353–367) and of the
+/// primary variable switching of Forsyth, Wu & Pruess (1995, Adv. Water
+/// Resources 18, 25–38), which likewise changes the unknown where a cell
+/// crosses saturation. Only the iteration changes: the residual, and so the
+/// solution, is that of MODEL.md. Far from saturation (a^(n−1) ≥ 1/2) the
+/// unknown is h itself.
+#[derive(Debug, Clone, Copy)]
+struct Coordinates {
+    alpha: f64,
+    exponent: f64,
+    saturated_conductivity: f64,
+    /// Whether ψ is used at all (n < 2: there is a cusp).
+    active: bool,
+}
+
+/// a^(n−1) below which ψ is the unknown.
+const PSI_LIMIT: f64 = 0.5;
+
+impl Coordinates {
+    fn new(soil: &VanGenuchten) -> Self {
+        Coordinates {
+            alpha: soil.alpha,
+            exponent: soil.n - 1.0,
+            saturated_conductivity: soil.saturated_conductivity,
+            active: soil.n < 2.0,
+        }
+    }
+
+    /// ψ of h where ψ is the unknown: α·h for h ≥ 0, −(α|h|)^(n−1) below.
+    fn coordinate(&self, h: f64) -> Option<f64> {
+        if !self.active {
+            return None;
+        }
+        if h >= 0.0 {
+            return Some(self.alpha * h);
+        }
+        let p = (-self.alpha * h).powf(self.exponent);
+        (p < PSI_LIMIT).then_some(-p)
+    }
+
+    /// (dK/du, dh/du) at h for the cell's unknown u.
+    fn chain(&self, h: f64, s: &HydraulicState, side: Side) -> (f64, f64) {
+        if self.coordinate(h).is_none() {
+            return (s.conductivity_derivative, 1.0);
+        }
+        let below = match side {
+            Side::BySign => h < 0.0,
+            Side::Below => true,
+            Side::Above => false,
+        };
+        if !below {
+            return (0.0, 1.0 / self.alpha);
+        }
+        let a = (-self.alpha * h).max(0.0);
+        if a < 1e-12 {
+            // the limits at ψ → 0⁻: K = Ks·(1 + 2ψ + o(ψ)), h = o(ψ)
+            return (2.0 * self.saturated_conductivity, 0.0);
+        }
+        // h = −|ψ|^(1/(n−1))/α: dh/dψ = a^(2−n)/(α(n−1))
+        let dh = a.powf(1.0 - self.exponent) / (self.alpha * self.exponent);
+        (s.conductivity_derivative * dh, dh)
+    }
+
+    /// The head of coordinate ψ.
+    fn head(&self, psi: f64) -> f64 {
+        if psi >= 0.0 {
+            psi / self.alpha
+        } else {
+            -(-psi).powf(1.0 / self.exponent) / self.alpha
+        }
+    }
+
+    /// The head after the step −δ in the cell's unknown; a step that crosses
+    /// the kink from either side stops on it (h = 0).
+    fn step(&self, base: f64, delta: f64) -> f64 {
+        match self.coordinate(base) {
+            None => base - delta,
+            Some(u) => {
+                let to = u - delta;
+                if u != 0.0 && to != 0.0 && (to < 0.0) != (u < 0.0) {
+                    0.0
+                } else {
+                    self.head(to)
+                }
+            }
+        }
+    }
 }
 
 /// The index of the entry of largest magnitude (NaN counts as largest).
@@ -740,9 +1107,10 @@ fn largest_entry(values: &[f64]) -> Option<usize> {
 }
 
 /// Solves the tridiagonal system with sub-diagonal `a(i)` (row i, column i−1),
-/// diagonal `b(i)` and super-diagonal `c(i)` by the Thomas algorithm. Returns
-/// false if a pivot vanishes (the Newton matrix is then treated as singular).
-fn solve_tridiagonal(
+/// diagonal `b(i)` and super-diagonal `c(i)` by the Thomas algorithm (the
+/// fast path: its Newton matrices are diagonally dominant away from the cusp).
+/// Returns false if a pivot vanishes or is not finite.
+fn solve_thomas(
     a: impl Fn(usize) -> f64,
     b: impl Fn(usize) -> f64,
     c: impl Fn(usize) -> f64,
@@ -768,6 +1136,97 @@ fn solve_tridiagonal(
         x[i] -= scratch[i + 1] * x[i + 1];
     }
     true
+}
+
+/// Tridiagonal solver by Gaussian elimination with partial pivoting (the
+/// scheme of LAPACK's `dgtsv`: a row swap fills one second super-diagonal).
+/// Near saturation the Newton matrix in ψ is not diagonally dominant (a cell
+/// on a kink has a near-zero diagonal and large off-diagonals), where the
+/// Thomas algorithm is unstable.
+#[derive(Debug, Clone)]
+struct Tridiagonal {
+    diagonal: Vec<f64>,
+    upper: Vec<f64>,
+    second: Vec<f64>,
+    rhs: Vec<f64>,
+}
+
+impl Tridiagonal {
+    fn new(n: usize) -> Self {
+        let z = vec![0.0; n];
+        Tridiagonal {
+            diagonal: z.clone(),
+            upper: z.clone(),
+            second: z.clone(),
+            rhs: z,
+        }
+    }
+
+    /// Solves the system with sub-diagonal `a(i)` (row i, column i−1),
+    /// diagonal `b(i)` and super-diagonal `c(i)` for `x`. Returns false if a
+    /// pivot vanishes or the solution is not finite (the matrix is then
+    /// treated as singular).
+    fn solve(
+        &mut self,
+        a: impl Fn(usize) -> f64,
+        b: impl Fn(usize) -> f64,
+        c: impl Fn(usize) -> f64,
+        rhs: &[f64],
+        x: &mut [f64],
+    ) -> bool {
+        let n = rhs.len();
+        let (d, du, du2, r) = (
+            &mut self.diagonal,
+            &mut self.upper,
+            &mut self.second,
+            &mut self.rhs,
+        );
+        for i in 0..n {
+            d[i] = b(i);
+            du[i] = if i + 1 < n { c(i) } else { 0.0 };
+            du2[i] = 0.0;
+            r[i] = rhs[i];
+        }
+        for i in 0..n.saturating_sub(1) {
+            let below = a(i + 1);
+            if d[i].abs() >= below.abs() {
+                if d[i] == 0.0 {
+                    return false;
+                }
+                let f = below / d[i];
+                d[i + 1] -= f * du[i];
+                r[i + 1] -= f * r[i];
+            } else {
+                // swap rows i and i+1
+                let f = d[i] / below;
+                d[i] = below;
+                let t = d[i + 1];
+                d[i + 1] = du[i] - f * t;
+                if i + 2 < n {
+                    du2[i] = du[i + 1];
+                    du[i + 1] = -f * du2[i];
+                }
+                du[i] = t;
+                let t = r[i];
+                r[i] = r[i + 1];
+                r[i + 1] = t - f * r[i + 1];
+            }
+        }
+        if d[n - 1] == 0.0 {
+            return false;
+        }
+        for i in (0..n).rev() {
+            let mut v = r[i];
+            if i + 1 < n {
+                v -= du[i] * x[i + 1];
+            }
+            if i + 2 < n {
+                v -= du2[i] * x[i + 2];
+            }
+            x[i] = v / d[i];
+        }
+        x.iter().all(|v| v.is_finite())
+    }
 }
 
 #[cfg(test)]
@@ -812,27 +1271,60 @@ mod tests {
     }
 
     #[test]
-    fn thomas_solves_a_known_system() {
+    fn the_tridiagonal_solver_solves_known_systems() {
+        let mut solver = Tridiagonal::new(3);
+        let mut x = vec![0.0; 3];
         // [[4,1,0],[1,4,1],[0,1,4]]·x = [5,6,5] has x = [1,1,1].
-        let (mut x, mut s) = (vec![0.0; 3], vec![0.0; 3]);
-        assert!(solve_tridiagonal(
-            |_| 1.0,
-            |_| 4.0,
-            |_| 1.0,
-            &[5.0, 6.0, 5.0],
-            &mut x,
-            &mut s
-        ));
+        assert!(solver.solve(|_| 1.0, |_| 4.0, |_| 1.0, &[5.0, 6.0, 5.0], &mut x));
         for v in &x {
             assert!((v - 1.0).abs() < 1e-14);
         }
-        assert!(!solve_tridiagonal(
-            |_| 0.0,
-            |_| 0.0,
-            |_| 0.0,
-            &[1.0; 3],
-            &mut x,
-            &mut s
+        // a zero diagonal needs the row swaps: [[0,1,0],[1,0,1],[0,1,1]]·x = [2,4,5]
+        // has x = [1,2,3].
+        assert!(solver.solve(
+            |_| 1.0,
+            |i| if i == 2 { 1.0 } else { 0.0 },
+            |_| 1.0,
+            &[2.0, 4.0, 5.0],
+            &mut x
         ));
+        for (v, want) in x.iter().zip([1.0, 2.0, 3.0]) {
+            assert!((v - want).abs() < 1e-14, "{x:?}");
+        }
+        assert!(!solver.solve(|_| 0.0, |_| 0.0, |_| 0.0, &[1.0; 3], &mut x));
+    }
+
+    /// The Newton coordinates near saturation map back to the heads and
+    /// have the derivatives they claim.
+    #[test]
+    fn psi_coordinates_are_consistent() {
+        let soil = crate::soil::Texture::Loam.parameters();
+        let c = Coordinates::new(&soil);
+        for h in [-0.05, -1e-3, -1e-7, 0.0, 1e-6] {
+            let u = c.coordinate(h).unwrap();
+            assert!((c.head(u) - h).abs() <= 1e-12 * h.abs().max(1e-300), "{h}");
+            let (dk, dh) = c.chain(h, &soil.state(h), Side::BySign);
+            let e = 1e-7 * u.abs().max(1e-9);
+            let (hp, hm) = (c.head(u + e), c.head(u - e));
+            let fd_h = (hp - hm) / (2.0 * e);
+            let fd_k = (soil.conductivity(hp) - soil.conductivity(hm)) / (2.0 * e);
+            if h != 0.0 {
+                assert!(
+                    (fd_h - dh).abs() <= 1e-4 * dh.abs() + 1e-12,
+                    "{h}: {fd_h} vs {dh}"
+                );
+                assert!(
+                    (fd_k - dk).abs() <= 1e-4 * dk.abs() + 1e-15,
+                    "{h}: {fd_k} vs {dk}"
+                );
+            }
+        }
+        // far from saturation the unknown is the head
+        assert!(c.coordinate(-1.0).is_none());
+        assert!(
+            Coordinates::new(&crate::soil::Texture::Sand.parameters())
+                .coordinate(-1e-3)
+                .is_none()
+        );
     }
 }
