@@ -75,16 +75,12 @@ pub struct FieldSimSettings {
     pub sim_token: Option<String>,
     /// Longest span [s of clock time] a plant replays after a stop.
     #[serde(
-        default = "default_catch_up",
+        default = "crate::service::settings::default_catch_up",
         deserialize_with = "crate::service::settings::lenient_f64"
     )]
     pub max_catch_up_s: f64,
     /// The simulated fields (each with a `simulation` section).
     pub fields: Vec<FieldSpec>,
-}
-
-fn default_catch_up() -> f64 {
-    2.0 * 86_400.0
 }
 
 impl Default for FieldSimSettings {
@@ -101,7 +97,7 @@ impl Default for FieldSimSettings {
             },
             max_buffer: 100_000,
             sim_token: None,
-            max_catch_up_s: default_catch_up(),
+            max_catch_up_s: crate::service::settings::default_catch_up(),
             fields: vec![FieldSpec {
                 name: "sim-field".into(),
                 actuator: Actuator::None,
@@ -485,25 +481,19 @@ async fn receive_setpoint(
                 return StatusCode::NO_CONTENT.into_response();
             }
         }
-        _ => {
-            let given = header("authorization")
-                .and_then(|v| v.split_once(' '))
-                .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
-                .map(|(_, t)| t.trim());
-            match given {
-                None => {
-                    return refuse(
-                        StatusCode::UNAUTHORIZED,
-                        "a setpoint needs the controller's signature or \
+        _ => match crate::service::api::bearer(&headers) {
+            None => {
+                return refuse(
+                    StatusCode::UNAUTHORIZED,
+                    "a setpoint needs the controller's signature or \
                          'Authorization: Bearer <simulator token>'",
-                    );
-                }
-                Some(t) if !same(t, &shared.token) => {
-                    return refuse(StatusCode::FORBIDDEN, "the bearer token is not valid");
-                }
-                Some(_) => {}
+                );
             }
-        }
+            Some(t) if !crate::service::api::same_secret(t, &shared.token) => {
+                return refuse(StatusCode::FORBIDDEN, "the bearer token is not valid");
+            }
+            Some(_) => {}
+        },
     }
     let setpoint: Setpoint = match serde_json::from_slice(&body) {
         Ok(s) => s,
@@ -534,12 +524,6 @@ async fn receive_setpoint(
     f.setpoint = Some((setpoint.rate, setpoint.valid_from, setpoint.valid_until));
     let _ = f.save(&shared.settings.sim_data_dir);
     StatusCode::NO_CONTENT.into_response()
-}
-
-/// Equal strings, compared without an early exit.
-fn same(a: &str, b: &str) -> bool {
-    let (a, b) = (a.as_bytes(), b.as_bytes());
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0
 }
 
 /// A secret kept in `dir/name` (0600), made at first use.

@@ -200,7 +200,7 @@ async fn guard(req: axum::extract::Request, next: axum::middleware::Next) -> Res
 
 /// The credentials of an `Authorization` header, if its scheme is
 /// `Bearer` (compared case-insensitively, RFC 9110 §11.1).
-fn bearer(headers: &HeaderMap) -> Option<&str> {
+pub(crate) fn bearer(headers: &HeaderMap) -> Option<&str> {
     let value = headers.get(header::AUTHORIZATION)?.to_str().ok()?.trim();
     let (scheme, token) = value.split_once(' ')?;
     scheme
@@ -210,11 +210,14 @@ fn bearer(headers: &HeaderMap) -> Option<&str> {
 
 /// Whether the request carries the token.
 fn has_token(state: &AppState, headers: &HeaderMap) -> bool {
-    bearer(headers).is_some_and(|given| {
-        // compare without an early exit on the first differing byte
-        let (a, b) = (given.as_bytes(), state.token.as_bytes());
-        a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0
-    })
+    bearer(headers).is_some_and(|given| same_secret(given, &state.token))
+}
+
+/// Equal secrets, compared without an early exit on the first differing
+/// byte.
+pub(crate) fn same_secret(a: &str, b: &str) -> bool {
+    let (a, b) = (a.as_bytes(), b.as_bytes());
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y)) == 0
 }
 
 /// Checks the bearer token of a mutating request: no credentials, or

@@ -68,7 +68,7 @@ impl Engine {
             models,
             plants: Mutex::new(HashMap::new()),
             cancel: Arc::default(),
-            max_catch_up_s: 2.0 * 86_400.0,
+            max_catch_up_s: super::settings::default_catch_up(),
         }
     }
 
@@ -217,6 +217,23 @@ impl Engine {
 
     /// One control cycle of `field` at clock time `now`: the window from the
     /// stored history, the forecast, the zone MPC, the stored setpoint.
+    /// A simulated field's weather scenario and day zero (its weather is
+    /// known); None for a real field.
+    fn scenario(
+        &self,
+        field: &Field,
+    ) -> Result<Option<(super::wire::Scenario, DateTime<Utc>)>, EngineError> {
+        let (Actuator::Simulated, Some(sim)) = (&field.spec.actuator, field.spec.simulation) else {
+            return Ok(None);
+        };
+        Ok(self.plant(field)?.map(|p| {
+            (
+                sim.scenario,
+                p.lock().unwrap_or_else(|e| e.into_inner()).day_zero(),
+            )
+        }))
+    }
+
     /// Reads what one cycle of `field` at `now` needs, in one go.
     pub fn load(&self, field: &Field, now: DateTime<Utc>) -> Result<CycleInputs, EngineError> {
         let period = field.spec.control_period_s;
@@ -233,15 +250,7 @@ impl Engine {
         {
             measurements.push(latest);
         }
-        let scenario = match (&field.spec.actuator, field.spec.simulation) {
-            (Actuator::Simulated, Some(sim)) => self.plant(field)?.map(|p| {
-                (
-                    sim.scenario,
-                    p.lock().unwrap_or_else(|e| e.into_inner()).day_zero(),
-                )
-            }),
-            _ => None,
-        };
+        let scenario = self.scenario(field)?;
         Ok(CycleInputs {
             field: field.clone(),
             now,
@@ -342,15 +351,7 @@ impl Engine {
         let setpoints =
             self.store
                 .setpoints(field.id, Some(clock - TimeDelta::days(2)), None, 10_000)?;
-        let scenario = match (&field.spec.actuator, field.spec.simulation) {
-            (Actuator::Simulated, Some(sim)) => self.plant(field)?.map(|p| {
-                (
-                    sim.scenario,
-                    p.lock().unwrap_or_else(|e| e.into_inner()).day_zero(),
-                )
-            }),
-            _ => None,
-        };
+        let scenario = self.scenario(field)?;
         let primary = field.spec.effective_sensors()[0].id.clone();
         let mut i = 0;
         while i < readings.len() {

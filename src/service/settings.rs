@@ -96,7 +96,8 @@ pub struct Limits {
     pub max_catch_up_s: f64,
 }
 
-fn default_catch_up() -> f64 {
+/// The default catch-up span: 2 days.
+pub fn default_catch_up() -> f64 {
     2.0 * 86_400.0
 }
 
