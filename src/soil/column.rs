@@ -86,6 +86,9 @@ pub struct Evaluation {
     pub uptake_gradient: Vec<f64>,
     /// (dK_i/du_i, dh_i/du_i) the derivatives were taken with ((K', 1) for u = h).
     chains: Vec<(f64, f64)>,
+    /// Cells evaluated on the saturated branch whatever their head (θ = θs,
+    /// K = Ks, C = K' = 0): the integrator's active-set iteration sets them.
+    pub(super) saturated_branch: Vec<bool>,
 }
 
 impl Evaluation {
@@ -102,6 +105,7 @@ impl Evaluation {
             bottom_gradient: 0.0,
             uptake_gradient: zeros,
             chains: vec![(0.0, 1.0); cells],
+            saturated_branch: vec![false; cells],
         }
     }
 }
@@ -235,8 +239,9 @@ impl Column {
         let sink = self.potential_sink(forcing);
         let roots = self.root_cells();
         let with_derivatives = derivatives == Derivatives::Included;
-        for (state, &h) in out.states.iter_mut().zip(heads) {
-            *state = self.soil.state(h);
+        for ((state, &h), &saturated) in out.states.iter_mut().zip(heads).zip(&out.saturated_branch)
+        {
+            *state = self.soil.state(if saturated { h.max(0.0) } else { h });
         }
         if with_derivatives {
             out.lower.fill(0.0);

@@ -236,6 +236,8 @@ const MAX_NEWTON_ITERATIONS: usize = 25;
 /// stages far below the error tolerance (they only perturb the solution).
 const NEWTON_TOLERANCE: f64 = 1e-13;
 const STAGE_TOLERANCE: f64 = 1e-10;
+/// Moves between the sets per cell in one active-set stage solve.
+const MAX_SWITCHES: u8 = 3;
 /// Step attempts that go straight to the robust path after the fast path failed.
 const ROBUST_STREAK: usize = 20;
 /// Cells with C below this multiple of Ss keep their heads in the projection
@@ -311,6 +313,12 @@ struct Workspace {
     /// Per cell, the side of the kink its Newton derivative is taken on.
     side: Vec<Side>,
     solver: Tridiagonal,
+    /// The robust path's starting guess of the stage being solved.
+    start: Vec<f64>,
+    /// Per cell, whether the active-set iteration holds it saturated, and
+    /// how often it moved between the sets in this stage solve.
+    saturated: Vec<bool>,
+    switches: Vec<u8>,
     /// Scratch of the Thomas algorithm (the fast path).
     scratch: Vec<f64>,
     /// Step attempts left that go straight to the robust path.
@@ -344,6 +352,9 @@ impl Workspace {
             side: vec![Side::BySign; n],
             solver: Tridiagonal::new(n),
             scratch: z.clone(),
+            start: z.clone(),
+            saturated: vec![false; n],
+            switches: vec![0; n],
             robust_streak: 0,
             keep_jacobians: false,
             start_capacity: z.clone(),
@@ -618,7 +629,13 @@ impl Integrator {
                     // the stored water through 1/(C + Ss) throws a saturated
                     // cell, C = 0, metres away from its root.)
                     let tolerance = self.newton_tolerance();
-                    self.solve_stage(forcing, GAMMA * dt, tolerance)
+                    self.work.base.copy_from_slice(&self.work.trial);
+                    self.work.start.copy_from_slice(&self.work.trial);
+                    self.solve_stage(forcing, GAMMA * dt, tolerance) || {
+                        let w = &mut self.work;
+                        w.trial.copy_from_slice(&w.start);
+                        self.solve_stage_active_set(forcing, GAMMA * dt, tolerance)
+                    }
                 }
             };
             if !solved {
@@ -841,6 +858,159 @@ impl Integrator {
                     return false;
                 }
             }
+        }
+        true
+    }
+
+    /// The robust path's second try at a stage whose semismooth Newton
+    /// failed: an active-set iteration (primary variable switching, Forsyth,
+    /// Wu & Pruess 1995, Adv. Water Resources 18, 25–38; as a semismooth
+    /// Newton method, Hintermüller, Ito & Kunisch 2003, SIAM J. Optim. 13,
+    /// 865–888). Every cell is in one of two sets: saturated, evaluated on
+    /// the saturated branch (θ = θs, K = Ks, storage θs + Ss·h) for any head,
+    /// its unknown h; or unsaturated, evaluated by van Genuchten–Mualem, its
+    /// unknown ψ of [`Coordinates`] (h stops at 0). Newton runs on the
+    /// branches' residual, which is smooth in each cell, and after every
+    /// iteration a saturated cell below h = 0 becomes unsaturated and an
+    /// unsaturated cell on h = 0 that Newton pushes up becomes saturated
+    /// (each cell at most [`MAX_SWITCHES`] times, then it stays). The solve
+    /// succeeds when the sets agree with the heads (a saturated cell still a
+    /// little below 0 is put on 0) and the residual of the model itself is
+    /// within the tolerance.
+    fn solve_stage_active_set(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
+        let n = self.column.cells();
+        let ss = self.column.soil().specific_storage;
+        let column = self.column;
+        let coordinates = Coordinates::new(self.column.soil());
+        let residual = |w: &mut Workspace| -> f64 {
+            let saturated = &w.saturated;
+            let chain = |i: usize, h: f64, st: &HydraulicState| {
+                if saturated[i] {
+                    (0.0, 1.0)
+                } else {
+                    coordinates.chain(h, st, Side::Below)
+                }
+            };
+            w.eval.saturated_branch.copy_from_slice(&w.saturated);
+            column.evaluate_in(
+                &w.trial,
+                forcing,
+                &mut w.eval,
+                Derivatives::Included,
+                Some(&chain),
+            );
+            w.eval.saturated_branch.fill(false);
+            let mut norm = 0.0f64;
+            for i in 0..n {
+                let water = w.eval.states[i].water_content + ss * w.trial[i];
+                w.residual[i] = water - w.known[i] - gamma_dt * w.eval.storage[i];
+                norm = norm.max(w.residual[i].abs());
+            }
+            if norm.is_finite() {
+                norm
+            } else {
+                f64::INFINITY
+            }
+        };
+        let w = &mut self.work;
+        for i in 0..n {
+            w.saturated[i] = w.trial[i] >= 0.0;
+        }
+        w.switches.fill(0);
+        let mut norm = residual(w);
+        let mut iterations = 0;
+        loop {
+            let consistent = (0..n).all(|i| !w.saturated[i] || w.trial[i] >= 0.0);
+            if norm <= tolerance && consistent {
+                break;
+            }
+            if iterations == MAX_NEWTON_ITERATIONS || !norm.is_finite() {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            iterations += 1;
+            self.statistics.newton_iterations += 1;
+            let e = &w.eval;
+            let (trial, saturated) = (&w.trial, &w.saturated);
+            let ok = w.solver.solve(
+                |i| -gamma_dt * e.lower[i],
+                |i| {
+                    let dh = if saturated[i] {
+                        1.0
+                    } else {
+                        coordinates.chain(trial[i], &e.states[i], Side::Below).1
+                    };
+                    (e.states[i].capacity + ss) * dh - gamma_dt * e.diagonal[i]
+                },
+                |i| -gamma_dt * e.upper[i],
+                &w.residual,
+                &mut w.update,
+            );
+            if !ok {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            // an unsaturated cell on h = 0 that Newton pushes up is saturated
+            let mut switched = false;
+            for i in 0..n {
+                if !w.saturated[i]
+                    && w.trial[i] == 0.0
+                    && w.update[i] < 0.0
+                    && w.switches[i] < MAX_SWITCHES
+                {
+                    w.saturated[i] = true;
+                    w.switches[i] += 1;
+                    switched = true;
+                }
+            }
+            if switched {
+                norm = residual(w);
+                continue;
+            }
+            w.base.copy_from_slice(&w.trial);
+            let mut lambda = 1.0;
+            loop {
+                for i in 0..n {
+                    w.trial[i] = if w.saturated[i] {
+                        w.base[i] - lambda * w.update[i]
+                    } else {
+                        coordinates.step(w.base[i], lambda * w.update[i]).min(0.0)
+                    };
+                }
+                let next = residual(w);
+                if next <= tolerance || next < (1.0 - 1e-4 * lambda) * norm || lambda < 0.1 {
+                    norm = next;
+                    break;
+                }
+                lambda *= 0.5;
+            }
+            // a saturated cell below h = 0 is unsaturated
+            let mut switched = false;
+            for i in 0..n {
+                if w.saturated[i] && w.trial[i] < 0.0 && w.switches[i] < MAX_SWITCHES {
+                    w.saturated[i] = false;
+                    w.switches[i] += 1;
+                    switched = true;
+                }
+            }
+            if switched {
+                norm = residual(w);
+            } else if norm <= tolerance {
+                // the cells that may not switch any more go on the kink
+                for i in 0..n {
+                    if w.saturated[i] && w.trial[i] < 0.0 {
+                        w.trial[i] = 0.0;
+                    }
+                }
+                norm = residual(w);
+            }
+        }
+        // the model's own residual, at the heads found
+        w.saturated.fill(false);
+        let norm = residual(w);
+        if norm > tolerance {
+            w.worst_cell = largest_entry(&w.residual);
+            return false;
         }
         true
     }
