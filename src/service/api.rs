@@ -353,14 +353,7 @@ async fn create_field(
     spec.validate().map_err(ApiError::bad)?;
     check_target(&state, &spec)?;
     // a webhook without a secret gets one, shown once in this answer
-    let mut generated = None;
-    if let Actuator::Webhook { secret, .. } = &mut spec.actuator
-        && secret.is_none()
-    {
-        let s = super::random_hex(32).map_err(ApiError::internal)?;
-        *secret = Some(s.clone());
-        generated = Some(s);
-    }
+    let generated = super::give_secret(&mut spec).map_err(ApiError::internal)?;
     let engine = state.engine.clone();
     let now = state.clock.now();
     let field =
@@ -369,15 +362,20 @@ async fn create_field(
     super::first_cycle(&state, &field).await;
     start_field(&state, &field);
     let mut doc = field.public(true);
-    if let (Some(secret), Some(actuator)) = (generated, doc.get_mut("actuator")) {
-        actuator["secret"] = serde_json::Value::String(secret);
-    }
+    show_once(&mut doc, generated);
     let location = format!("/v1/fields/{}", field.id);
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, location)],
         Json(doc),
     ))
+}
+
+/// Puts a secret just generated into the answer, the one time it is shown.
+fn show_once(doc: &mut serde_json::Value, generated: Option<String>) {
+    if let (Some(secret), Some(actuator)) = (generated, doc.get_mut("actuator")) {
+        actuator["secret"] = serde_json::Value::String(secret);
+    }
 }
 
 /// A webhook at a literal address the daemon does not call is refused now.
@@ -429,14 +427,7 @@ async fn patch_field(
     let mut spec = spec;
     spec.validate().map_err(ApiError::bad)?;
     check_target(&state, &spec)?;
-    let mut generated = None;
-    if let Actuator::Webhook { secret, .. } = &mut spec.actuator
-        && secret.is_none()
-    {
-        let s = super::random_hex(32).map_err(ApiError::internal)?;
-        *secret = Some(s.clone());
-        generated = Some(s);
-    }
+    let generated = super::give_secret(&mut spec).map_err(ApiError::internal)?;
     let engine = state.engine.clone();
     let s = spec.clone();
     let id = field.id;
@@ -445,9 +436,7 @@ async fn patch_field(
     stop_field(&state, field.id);
     start_field(&state, &field);
     let mut doc = field.public(true);
-    if let (Some(secret), Some(actuator)) = (generated, doc.get_mut("actuator")) {
-        actuator["secret"] = serde_json::Value::String(secret);
-    }
+    show_once(&mut doc, generated);
     Ok(Json(doc))
 }
 

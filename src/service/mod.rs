@@ -125,6 +125,19 @@ pub fn install_tls() {
     let _ = rustls::crypto::ring::default_provider().install_default();
 }
 
+/// Gives a webhook actuator without a secret a new one; returns it (to be
+/// shown once), or None when there was nothing to make.
+pub(crate) fn give_secret(spec: &mut wire::FieldSpec) -> Result<Option<String>, String> {
+    match &mut spec.actuator {
+        Actuator::Webhook { secret, .. } if secret.is_none() => {
+            let s = random_hex(32)?;
+            *secret = Some(s.clone());
+            Ok(Some(s))
+        }
+        _ => Ok(None),
+    }
+}
+
 /// `bytes` random bytes from the system's generator, as hex.
 pub(crate) fn random_hex(bytes: usize) -> Result<String, String> {
     let mut buf = vec![0u8; bytes];
@@ -197,15 +210,11 @@ impl App {
         if store.fields()?.is_empty() {
             for spec in &settings.fields {
                 let mut spec = spec.clone();
-                if let Actuator::Webhook { secret, .. } = &mut spec.actuator
-                    && secret.is_none()
-                {
-                    // a configured webhook without a secret: one is made and
-                    // logged once, for the receiver
-                    let s = random_hex(32).map_err(ServeError::Io)?;
+                // a configured webhook without a secret: one is made and
+                // logged once, for the receiver
+                if let Some(s) = give_secret(&mut spec).map_err(ServeError::Io)? {
                     tracing::warn!(field = %spec.name, secret = %s,
                         "webhook secret generated (set actuator.secret in the configuration to choose it)");
-                    *secret = Some(s);
                 }
                 store.create_field(&spec, clock.now())?;
             }
