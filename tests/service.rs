@@ -1,7 +1,6 @@
 //! The daemon end to end: the real `rootzone serve` on an ephemeral port with
 //! a temporary data directory, driven with curl.
 
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
@@ -406,14 +405,7 @@ fn acknowledged_data_survives_kill_9_and_a_restart() {
     let all = json_of(&curl(&d, "GET", &format!("{fp}/setpoints"), None, None).2);
     assert!(all.as_array().unwrap().contains(&sp), "{all}");
     // SIGTERM: a clean stop
-    let pid = d.child.id().to_string();
-    assert!(
-        Command::new("kill")
-            .args(["-TERM", &pid])
-            .status()
-            .unwrap()
-            .success()
-    );
+    d.sigterm();
     let deadline = Instant::now() + Duration::from_secs(20);
     let status = loop {
         if let Some(status) = d.child.try_wait().unwrap() {
@@ -560,15 +552,8 @@ fn a_field_that_cannot_finish_blocks_neither_others_nor_shutdown() {
         curl_at(&base, "POST", &path, None, Some(TOKEN))
     });
     std::thread::sleep(Duration::from_millis(200));
-    let pid = d.child.id().to_string();
     let sent = Instant::now();
-    assert!(
-        Command::new("kill")
-            .args(["-TERM", &pid])
-            .status()
-            .unwrap()
-            .success()
-    );
+    d.sigterm();
     let deadline = sent + Duration::from_secs(8);
     loop {
         if let Some(status) = d.child.try_wait().unwrap() {

@@ -481,14 +481,7 @@ fn sigterm_stops_webhook_retries_at_once() {
     rx.recv_timeout(Duration::from_secs(10))
         .expect("a first attempt");
     let started = std::time::Instant::now();
-    let pid = d.child.id().to_string();
-    assert!(
-        Command::new("kill")
-            .args(["-TERM", &pid])
-            .status()
-            .unwrap()
-            .success()
-    );
+    d.sigterm();
     let status = d.child.wait().unwrap();
     let took = started.elapsed();
     assert!(status.success(), "{status:?}");

@@ -14,6 +14,15 @@ pub struct Daemon {
     pub base: String,
 }
 
+impl Daemon {
+    /// Asks the daemon to stop (SIGTERM).
+    pub fn sigterm(&self) {
+        let pid = self.child.id().to_string();
+        let sent = Command::new("kill").args(["-TERM", &pid]).status();
+        assert!(sent.is_ok_and(|s| s.success()), "kill -TERM {pid}");
+    }
+}
+
 impl Drop for Daemon {
     fn drop(&mut self) {
         let _ = self.child.kill();
