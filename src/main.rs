@@ -169,6 +169,7 @@ Defaults (each setting: config file key / environment variable):
   limits.max_future_skew_s  300                   ROOTZONE_LIMITS__MAX_FUTURE_SKEW_S
   limits.worker_threads     2                     ROOTZONE_LIMITS__WORKER_THREADS
   limits.max_catch_up_s     172800 (2 days)       ROOTZONE_LIMITS__MAX_CATCH_UP_S
+  limits.late_window_s      3600 (readings up to 1 h late are assimilated)  ROOTZONE_LIMITS__LATE_WINDOW_S
   log.format                text (or json)        ROOTZONE_LOG__FORMAT
   log.level                 info (RUST_LOG wins)  ROOTZONE_LOG__LEVEL
   webhooks.allow_link_local false                 ROOTZONE_WEBHOOKS__ALLOW_LINK_LOCAL

@@ -16,6 +16,7 @@ use crate::weather::{WeatherStep, mm_to_rate, rate_to_mm};
 
 use super::engine::Models;
 use super::wire::{Field, Forecast, Measurement, ModelKind, Scenario, Setpoint};
+use crate::estimate::{EstimateError, Estimator, EstimatorSnapshot};
 
 /// How many past setpoints enter the bias (MODEL.md: f = 2).
 pub const BIAS_PERIOD: usize = 2;
@@ -339,6 +340,109 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     }
 }
 
+/// The weather of a field without a plant over the SCENARIO_STEP starting
+/// at `t`, as amounts per SCENARIO_STEP: the newest of `forecasts` whose
+/// span holds `t` (the forecast nearest the event), else the climatology.
+pub fn observed_weather(forecasts: &[Forecast], t: DateTime<Utc>) -> WeatherStep {
+    for f in forecasts.iter().rev() {
+        let a = seconds(t - f.start);
+        if a < 0.0 || f.step_s <= 0.0 {
+            continue;
+        }
+        let i = (a / f.step_s).floor() as usize;
+        if let (Some(et0), Some(precip)) = (f.et0_mm.get(i), f.precip_mm.get(i)) {
+            return WeatherStep {
+                start_hour: 0.0,
+                et0_mm: et0 * SCENARIO_STEP / f.step_s,
+                precip_mm: precip * SCENARIO_STEP / f.step_s,
+            };
+        }
+    }
+    climatology(t, SCENARIO_STEP)
+}
+
+/// Where an assimilation ended.
+#[derive(Debug, Clone)]
+pub struct Assimilated {
+    /// The time the estimate has reached (its last reading).
+    pub clock: DateTime<Utc>,
+    /// The estimate after the last reading at or before `settle_before`
+    /// (time, snapshot, resets), from which the next run starts.
+    pub settled: (DateTime<Utc>, EstimatorSnapshot, u64),
+    /// Resets to the prior, counting those passed on by the start.
+    pub resets: u64,
+    pub flags: Vec<String>,
+}
+
+/// Brings `est` from `clock` through `readings` (every sensor, oldest
+/// first; those at or before `clock` are skipped): between reading times a
+/// forecast per interval of at most `period` s with the irrigation in force
+/// (`setpoints`) and the weather of `weather_at`, at each time an update
+/// with that time's readings. A reading naming no sensor is `primary`'s;
+/// readings of unknown sensors are skipped. A diverged estimator is reset
+/// to its prior and flagged `estimator-reset`. A pure function: the daemon
+/// and its tests run it on plain data.
+#[allow(clippy::too_many_arguments)]
+pub fn assimilate(
+    est: &mut Estimator,
+    mut clock: DateTime<Utc>,
+    mut resets: u64,
+    readings: &[Measurement],
+    setpoints: &[Setpoint],
+    weather_at: &dyn Fn(DateTime<Utc>) -> WeatherStep,
+    period: f64,
+    settle_before: DateTime<Utc>,
+    primary: &str,
+) -> Assimilated {
+    let mut flags = Vec::new();
+    let mut settled = None;
+    let mut i = readings.partition_point(|m| m.time <= clock);
+    while i < readings.len() {
+        let t = readings[i].time;
+        if settled.is_none() && t > settle_before {
+            settled = Some((clock, est.snapshot(), resets));
+        }
+        let group = &readings[i..][..readings[i..].iter().take_while(|m| m.time == t).count()];
+        i += group.len();
+        let mut outcome: Result<(), EstimateError> = Ok(());
+        while clock < t && outcome.is_ok() {
+            let dt = seconds(t - clock).min(period);
+            let rate = setpoints
+                .iter()
+                .rev()
+                .find(|s| s.valid_from <= clock && clock < s.valid_until)
+                .map_or(0.0, |s| s.rate);
+            outcome = est.predict(weather_at(clock).forcing(rate, SCENARIO_STEP), dt);
+            clock += TimeDelta::milliseconds((dt * 1e3) as i64);
+        }
+        clock = t;
+        let values: Vec<(usize, f64)> = group
+            .iter()
+            .filter_map(|m| {
+                let id = m.sensor.as_deref().unwrap_or(primary);
+                est.sensor_index(id).map(|k| (k, m.theta))
+            })
+            .collect();
+        if outcome.is_ok() && !values.is_empty() {
+            outcome = est.update(&values).map(|_| ());
+        }
+        if let Err(e) = outcome {
+            tracing::warn!(error = %e, at = %t, "state estimate reset to its prior");
+            est.reset_to_prior();
+            resets += 1;
+            if !flags.iter().any(|f| f == "estimator-reset") {
+                flags.push("estimator-reset".into());
+            }
+        }
+    }
+    Assimilated {
+        clock,
+        settled: settled.unwrap_or_else(|| (clock, est.snapshot(), resets)),
+        resets,
+        flags,
+    }
+}
+
 /// The surrogate window at `now`: for each of the last 20 periods, the
 /// supply (the setpoint in force, plus the rain of a simulated field) and
 /// θ measured at its end; before the first measurement, (0, first θ).
@@ -532,6 +636,142 @@ mod tests {
         let sp = decide(&i, &m, &cancel());
         // (0.205 − 0.210 + 0.195 − 0.200) / 2
         assert!((sp.bias - (-0.005)).abs() < 1e-12, "{}", sp.bias);
+    }
+
+    fn estimator() -> Estimator {
+        Estimator::new(
+            crate::estimate::Prior::Texture(crate::soil::Texture::SandyLoam),
+            crate::soil::Crop::default(),
+            vec![
+                crate::estimate::Sensor {
+                    id: "top".into(),
+                    depth: 0.05,
+                    noise: 0.01,
+                },
+                crate::estimate::Sensor {
+                    id: "root".into(),
+                    depth: 0.125,
+                    noise: 0.01,
+                },
+            ],
+            crate::estimate::InitialGuess::Reading(0.2),
+            crate::estimate::EstimatorSettings::default(),
+        )
+        .unwrap()
+    }
+
+    fn sensor_reading(t: &str, sensor: &str, theta: f64) -> Measurement {
+        Measurement {
+            sensor: Some(sensor.into()),
+            ..reading(t, theta)
+        }
+    }
+
+    #[test]
+    fn a_reading_late_within_the_window_counts_as_if_it_had_come_in_time() {
+        let start = at("2026-06-02T00:00:00Z");
+        let all = vec![
+            sensor_reading("2026-06-02T01:00:00Z", "root", 0.21),
+            sensor_reading("2026-06-02T02:00:00Z", "root", 0.20),
+            sensor_reading("2026-06-02T02:00:00Z", "top", 0.17),
+            sensor_reading("2026-06-02T03:00:00Z", "root", 0.19),
+            sensor_reading("2026-06-02T04:00:00Z", "root", 0.185),
+        ];
+        let weather = |t| climatology(t, SCENARIO_STEP);
+        let run = |est: &mut Estimator, clock, readings: &[Measurement], settle: &str| {
+            assimilate(
+                est,
+                clock,
+                0,
+                readings,
+                &[],
+                &weather,
+                7200.0,
+                at(settle),
+                "root",
+            )
+        };
+        // in time: everything at once
+        let mut on_time = estimator();
+        let done = run(&mut on_time, start, &all, "2026-06-02T04:00:00Z");
+        assert_eq!(done.clock, at("2026-06-02T04:00:00Z"));
+        // late: the 02:00 readings and the 03:00 one are missing at the
+        // first cycle, whose window settles the estimate after 01:00
+        let mut late = estimator();
+        let first: Vec<Measurement> = vec![all[0].clone(), all[4].clone()];
+        let done = run(&mut late, start, &first, "2026-06-02T01:30:00Z");
+        let (settled_at, snapshot, _) = done.settled;
+        assert_eq!(settled_at, at("2026-06-02T01:00:00Z"));
+        assert_ne!(late.mean_heads(), on_time.mean_heads());
+        // the next cycle starts from the settled state with every reading
+        let mut resumed = Estimator::restore(snapshot).unwrap();
+        let done = run(&mut resumed, settled_at, &all, "2026-06-02T04:00:00Z");
+        assert_eq!(done.clock, at("2026-06-02T04:00:00Z"));
+        assert_eq!(resumed.mean_heads(), on_time.mean_heads());
+        assert_eq!(resumed.soil(), on_time.soil());
+        // a reading older than the settled state is not assimilated
+        let mut again = Estimator::restore(late_snapshot(&all)).unwrap();
+        let mut with_old = vec![sensor_reading("2026-06-02T00:30:00Z", "root", 0.30)];
+        with_old.extend(all.iter().cloned());
+        run(
+            &mut again,
+            at("2026-06-02T01:00:00Z"),
+            &with_old,
+            "2026-06-02T04:00:00Z",
+        );
+        assert_eq!(again.mean_heads(), on_time.mean_heads());
+    }
+
+    /// The estimate after the first reading of `all` alone.
+    fn late_snapshot(all: &[Measurement]) -> EstimatorSnapshot {
+        let mut est = estimator();
+        let weather = |t| climatology(t, SCENARIO_STEP);
+        let done = assimilate(
+            &mut est,
+            at("2026-06-02T00:00:00Z"),
+            0,
+            &all[..1],
+            &[],
+            &weather,
+            7200.0,
+            at("2026-06-02T01:00:00Z"),
+            "root",
+        );
+        done.settled.1
+    }
+
+    #[test]
+    fn the_weather_between_readings_is_the_newest_forecast_holding_the_time() {
+        let old = Forecast {
+            issued_at: at("2026-06-02T00:00:00Z"),
+            start: at("2026-06-02T00:00:00Z"),
+            step_s: 3600.0,
+            et0_mm: vec![0.1; 12],
+            precip_mm: vec![0.0; 12],
+        };
+        let new = Forecast {
+            issued_at: at("2026-06-02T06:00:00Z"),
+            start: at("2026-06-02T06:00:00Z"),
+            step_s: 3600.0,
+            et0_mm: vec![0.3; 12],
+            precip_mm: vec![2.0; 12],
+        };
+        let both = [old, new];
+        // 03:00 only the old one holds: 0.1 mm/h = 0.2 mm per 2-h step
+        let w = observed_weather(&both, at("2026-06-02T03:00:00Z"));
+        assert!(
+            (w.et0_mm - 0.2).abs() < 1e-12 && w.precip_mm == 0.0,
+            "{w:?}"
+        );
+        // 07:00 both do: the newer wins
+        let w = observed_weather(&both, at("2026-06-02T07:00:00Z"));
+        assert!((w.et0_mm - 0.6).abs() < 1e-12 && (w.precip_mm - 4.0).abs() < 1e-12);
+        // after both: the climatology
+        let t = at("2026-06-03T03:00:00Z");
+        assert_eq!(
+            observed_weather(&both, t).et0_mm,
+            climatology(t, SCENARIO_STEP).et0_mm
+        );
     }
 
     #[test]

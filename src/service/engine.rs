@@ -8,17 +8,18 @@ use chrono::{DateTime, TimeDelta, Utc};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::sim::{PlantState, SCENARIO_STEP, SimulatedPlant, scenario_forecast};
+use crate::sim::{PlantState, SimulatedPlant, scenario_forecast};
 use crate::surrogate::ModelFile;
 use crate::surrogate::evaluate::WINDOW;
 use crate::weather::WeatherStep;
 
-use super::cycle::{BIAS_PERIOD, CycleInputs, EstimateView, climatology, decide};
+use super::cycle::{
+    BIAS_PERIOD, CycleInputs, EstimateView, assimilate, climatology, decide, observed_weather,
+};
 use super::store::{Sensors, Store, StoreError};
 use super::wire::{Actuator, Field, Forecast, Setpoint};
 use crate::estimate::{
-    EstimateError, Estimator, EstimatorSettings, EstimatorSnapshot, InitialGuess, Prior,
-    Sensor as EstimatedSensor,
+    Estimator, EstimatorSettings, EstimatorSnapshot, InitialGuess, Prior, Sensor as EstimatedSensor,
 };
 
 /// The surrogates, loaded once.
@@ -32,12 +33,24 @@ fn seconds(d: TimeDelta) -> f64 {
 }
 
 /// A field's stored state estimate: the estimator's snapshot, the clock
-/// time it has reached, and how often it was reset.
+/// time it has reached, how often it was reset, and the settled estimate
+/// the next cycle starts from.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct StoredEstimate {
     pub time: DateTime<Utc>,
     pub snapshot: EstimatorSnapshot,
     #[serde(default)]
+    pub resets: u64,
+    /// The estimate after the last reading older than the late window.
+    #[serde(default)]
+    pub settled: Option<Box<Checkpoint>>,
+}
+
+/// An estimate at a time.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct Checkpoint {
+    pub time: DateTime<Utc>,
+    pub snapshot: EstimatorSnapshot,
     pub resets: u64,
 }
 
@@ -50,6 +63,9 @@ pub struct Engine {
     pub cancel: Arc<std::sync::atomic::AtomicBool>,
     /// Longest span a simulated plant replays [s of clock time].
     max_catch_up_s: f64,
+    /// How late [s of clock time] a reading may arrive and still be
+    /// assimilated.
+    late_window_s: f64,
 }
 
 /// A failure of the work (not of the input).
@@ -69,7 +85,15 @@ impl Engine {
             plants: Mutex::new(HashMap::new()),
             cancel: Arc::default(),
             max_catch_up_s: super::settings::default_catch_up(),
+            late_window_s: super::settings::default_late_window(),
         }
+    }
+
+    /// How late [s of clock time] a reading may arrive and still enter the
+    /// state estimate.
+    pub fn late_window(mut self, seconds: f64) -> Engine {
+        self.late_window_s = seconds;
+        self
     }
 
     /// The longest span [s] a simulated plant replays to catch up with the
@@ -299,30 +323,39 @@ impl Engine {
         )
     }
 
-    /// Brings the field's state estimate up to `now`: restored from
-    /// storage (or started from the first reading), then, for every time a
-    /// reading was taken since, a forecast over the interval (the
-    /// irrigation in force; the scenario's weather for a simulated field,
-    /// else the climatology) and the update with that time's readings of
-    /// every sensor. Readings older than the estimate are not assimilated.
-    /// A diverged estimator is reset to its prior and flagged
-    /// `estimator-reset`. Stores the result; returns what the cycle uses.
+    /// Brings the field's state estimate up to `now`: restored from its
+    /// settled state (the estimate after the last reading older than the
+    /// late window) or started from the first reading, then [`assimilate`]
+    /// over every reading since, so readings that arrive late or out of
+    /// order within the window count. The weather between readings is the
+    /// scenario's for a simulated field, else the forecast nearest the
+    /// time, else the climatology. A diverged estimator is reset to its
+    /// prior and flagged `estimator-reset`. Stores the current and the
+    /// settled estimate; returns what the cycle uses.
     pub fn estimate(
         &self,
         field: &Field,
         now: DateTime<Utc>,
     ) -> Result<(Option<EstimateView>, Vec<String>), EngineError> {
-        let mut flags = Vec::new();
         let period = field.spec.control_period_s;
         let stored: Option<StoredEstimate> = self
             .store
             .estimate(field.id)?
             .and_then(|body| serde_json::from_str(&body).ok());
         let too_old = |t: DateTime<Utc>| seconds(now - t) > self.max_catch_up_s.max(period);
-        let (mut est, mut clock, mut resets) = match stored
-            .filter(|s| !too_old(s.time))
-            .and_then(|s| Some((Estimator::restore(s.snapshot).ok()?, s.time, s.resets)))
-        {
+        let restored = stored.and_then(|s| {
+            // from the settled state; an estimate stored without one starts
+            // from itself
+            let (time, snapshot, resets) = match s.settled {
+                Some(c) => (c.time, c.snapshot, c.resets),
+                None => (s.time, s.snapshot, s.resets),
+            };
+            if too_old(time) {
+                return None;
+            }
+            Some((Estimator::restore(snapshot).ok()?, time, resets))
+        });
+        let (mut est, clock, resets) = match restored {
             Some(found) => found,
             None => {
                 // start from the first primary reading within the catch-up span
@@ -333,7 +366,7 @@ impl Engine {
                     .into_iter()
                     .next();
                 let Some(first) = first else {
-                    return Ok((None, flags));
+                    return Ok((None, Vec::new()));
                 };
                 let est = self
                     .new_estimator(field, first.theta)
@@ -352,52 +385,42 @@ impl Engine {
             self.store
                 .setpoints(field.id, Some(clock - TimeDelta::days(2)), None, 10_000)?;
         let scenario = self.scenario(field)?;
+        let forecasts = match scenario {
+            Some(_) => Vec::new(),
+            None => self
+                .store
+                .forecasts_since(field.id, clock - TimeDelta::days(2), 500)?,
+        };
+        let weather_at = |t: DateTime<Utc>| match scenario {
+            Some((sc, d0)) => crate::sim::scenario_weather(sc, d0, t),
+            None => observed_weather(&forecasts, t),
+        };
         let primary = field.spec.effective_sensors()[0].id.clone();
-        let mut i = 0;
-        while i < readings.len() {
-            let t = readings[i].time;
-            let group: Vec<&super::wire::Measurement> =
-                readings[i..].iter().take_while(|m| m.time == t).collect();
-            i += group.len();
-            let mut outcome: Result<(), EstimateError> = Ok(());
-            while clock < t && outcome.is_ok() {
-                let dt = seconds(t - clock).min(period);
-                let rate = setpoints
-                    .iter()
-                    .rev()
-                    .find(|s| s.valid_from <= clock && clock < s.valid_until)
-                    .map_or(0.0, |s| s.rate);
-                let weather = match scenario {
-                    Some((sc, d0)) => crate::sim::scenario_weather(sc, d0, clock),
-                    None => climatology(clock, SCENARIO_STEP),
-                };
-                outcome = est.predict(weather.forcing(rate, SCENARIO_STEP), dt);
-                clock += TimeDelta::milliseconds((dt * 1e3) as i64);
-            }
-            clock = t;
-            let values: Vec<(usize, f64)> = group
-                .iter()
-                .filter_map(|m| {
-                    let id = m.sensor.as_deref().unwrap_or(&primary);
-                    est.sensor_index(id).map(|k| (k, m.theta))
-                })
-                .collect();
-            if outcome.is_ok() && !values.is_empty() {
-                outcome = est.update(&values).map(|_| ());
-            }
-            if let Err(e) = outcome {
-                tracing::warn!(field = field.id, error = %e, "state estimate reset to its prior");
-                est.reset_to_prior();
-                resets += 1;
-                if !flags.iter().any(|f| f == "estimator-reset") {
-                    flags.push("estimator-reset".into());
-                }
-            }
-        }
-        let body = serde_json::to_string(&StoredEstimate {
-            time: clock,
-            snapshot: est.snapshot(),
+        let settle_before = now - TimeDelta::milliseconds((self.late_window_s * 1e3) as i64);
+        let done = assimilate(
+            &mut est,
+            clock,
             resets,
+            &readings,
+            &setpoints,
+            &weather_at,
+            period,
+            settle_before,
+            &primary,
+        );
+        if !done.flags.is_empty() {
+            tracing::warn!(field = field.id, "state estimate reset to its prior");
+        }
+        let (settled_time, settled_snapshot, settled_resets) = done.settled;
+        let body = serde_json::to_string(&StoredEstimate {
+            time: done.clock,
+            snapshot: est.snapshot(),
+            resets: done.resets,
+            settled: Some(Box::new(Checkpoint {
+                time: settled_time,
+                snapshot: settled_snapshot,
+                resets: settled_resets,
+            })),
         })
         .map_err(StoreError::from)?;
         self.store.put_estimate(field.id, &body)?;
@@ -407,7 +430,7 @@ impl Engine {
                 soil: est.soil(),
                 depth: est.settings().depth,
             }),
-            flags,
+            done.flags,
         ))
     }
 

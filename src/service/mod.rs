@@ -231,7 +231,9 @@ impl App {
         }
         let state = Arc::new(AppState {
             engine: Arc::new(
-                Engine::new(store, models).catch_up_limit(settings.limits.max_catch_up_s),
+                Engine::new(store, models)
+                    .catch_up_limit(settings.limits.max_catch_up_s)
+                    .late_window(settings.limits.late_window_s),
             ),
             clock,
             metrics: Metrics::new(),

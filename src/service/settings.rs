@@ -26,6 +26,7 @@ pub const ENV_KEYS: &[&str] = &[
     "limits.max_future_skew_s",
     "limits.worker_threads",
     "limits.max_catch_up_s",
+    "limits.late_window_s",
     "log.format",
     "log.level",
     "webhooks.allow_link_local",
@@ -94,6 +95,17 @@ pub struct Limits {
     /// the rest is skipped with a warning.
     #[serde(default = "default_catch_up", deserialize_with = "lenient_f64")]
     pub max_catch_up_s: f64,
+    /// How late [s of clock time] a measurement may arrive and still be
+    /// assimilated by the state estimate, in [0, 86400]: each cycle
+    /// re-runs the estimator from its settled state this far back, so
+    /// readings that arrive late or out of order within it count.
+    #[serde(default = "default_late_window", deserialize_with = "lenient_f64")]
+    pub late_window_s: f64,
+}
+
+/// The default late-reading window: 1 hour.
+pub fn default_late_window() -> f64 {
+    3600.0
 }
 
 /// The default catch-up span: 2 days.
@@ -178,6 +190,7 @@ impl Default for Settings {
                 max_future_skew_s: 300.0,
                 worker_threads: 2,
                 max_catch_up_s: default_catch_up(),
+                late_window_s: default_late_window(),
             },
             log: LogSettings::default(),
             webhooks: WebhookSettings::default(),
@@ -238,6 +251,8 @@ impl Settings {
             (0.0, 30.0 * 86_400.0),
         )
         .map_err(SettingsError)?;
+        check_range("limits.late_window_s", l.late_window_s, (0.0, 86_400.0))
+            .map_err(SettingsError)?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",

@@ -435,6 +435,29 @@ impl Store {
         Ok(body.map(|b| serde_json::from_str(&b)).transpose()?)
     }
 
+    /// The forecasts issued at or after `from`, oldest first; at most the
+    /// newest `limit`.
+    pub fn forecasts_since(
+        &self,
+        field: i64,
+        from: DateTime<Utc>,
+        limit: usize,
+    ) -> Result<Vec<Forecast>, StoreError> {
+        let mut bodies: Vec<String> = self.with(|c| {
+            let mut stmt = c.prepare_cached(
+                "SELECT body FROM forecasts WHERE field_id = ?1 AND issued_at >= ?2
+                 ORDER BY id DESC LIMIT ?3",
+            )?;
+            let rows = stmt.query_map(params![field, millis(from), limit as i64], |r| r.get(0))?;
+            Ok(rows.collect::<Result<Vec<_>, _>>()?)
+        })?;
+        bodies.reverse();
+        Ok(bodies
+            .iter()
+            .map(|b| serde_json::from_str(b))
+            .collect::<Result<_, _>>()?)
+    }
+
     pub fn add_setpoint(&self, setpoint: &Setpoint) -> Result<(), StoreError> {
         let body = serde_json::to_string(setpoint)?;
         self.with(|c| {
