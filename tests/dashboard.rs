@@ -99,6 +99,19 @@ seed = 4
         "too few measured points"
     );
     assert!(svg.contains("<polyline"), "no lines");
+    // the profile: the estimate's band and line, the simulated truth
+    let svg = Command::new("curl")
+        .args(["-s", &format!("{base}/v1/fields/1/profile.svg")])
+        .output()
+        .unwrap();
+    let svg = String::from_utf8_lossy(&svg.stdout);
+    assert!(svg.starts_with("<svg"), "{svg}");
+    assert!(svg.contains("<polygon"), "no uncertainty band: {svg}");
+    assert!(
+        svg.contains("estimated θ") && svg.contains("true θ"),
+        "{svg}"
+    );
+    assert!(svg.matches("<polyline").count() >= 2, "no profile lines");
 
     let profile = dir.path().join("chromium-profile");
     let run = |extra: &[&str]| {
@@ -137,7 +150,7 @@ seed = 4
     assert!(html.contains(" UTC (in "), "{html}");
     assert_eq!(
         html.matches("data-loaded=\"yes\"").count(),
-        2,
+        4,
         "charts not loaded: {html}"
     );
     // the screenshot, kept as a test artefact

@@ -200,3 +200,82 @@ fn the_daemon_estimates_the_state_and_soil_from_the_readings_alone() {
     }
     assert!(!e["innovations"].as_array().unwrap().is_empty(), "{e}");
 }
+
+#[test]
+fn a_field_of_unknown_soil_is_controlled_on_the_soil_its_estimate_finds() {
+    let dir = tempfile::tempdir().unwrap();
+    // one clock hour per real second
+    let d = start(dir.path(), &config("[clock]\nspeedup = 3600.0"));
+    // the plant is a loam; the controller is told nothing about it
+    let r = post(
+        &d,
+        "/v1/fields",
+        &json!({"name": "new ground", "soil": "unknown", "model": "richards",
+                "zone": {"low_head": -0.43, "up_head": -0.27},
+                "actuator": {"kind": "simulated"},
+                "simulation": {"soil": "loam", "measurement_noise": 0.01,
+                               "measurement_interval_s": 1800, "initial_head": -0.3}}),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let field = json_of(&r.2);
+    let id = field["id"].as_i64().unwrap();
+    assert_eq!(field["soil"], "unknown");
+    assert_eq!(field["simulation"]["soil"], "loam");
+    // a soil the estimate cannot start from is refused, naming the key
+    let r = post(
+        &d,
+        "/v1/fields",
+        &json!({"name": "x", "soil": "unknown", "actuator": {"kind": "simulated"},
+                "model": "richards", "simulation": {}}),
+    );
+    problem(r, 422, "simulation.soil");
+    // wait for cycles over about 14 h of clock time
+    let path = format!("/v1/fields/{id}");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    let setpoints = loop {
+        let s = json_of(&curl(&d, "GET", &format!("{path}/setpoints"), None, None).2);
+        if s.as_array().is_some_and(|a| a.len() >= 8) {
+            break s;
+        }
+        assert!(std::time::Instant::now() < deadline, "no cycles: {s}");
+        std::thread::sleep(std::time::Duration::from_millis(250));
+    };
+    let e = json_of(&curl(&d, "GET", &format!("{path}/estimate"), None, None).2);
+    assert_eq!(e["estimated"], true, "{e}");
+    assert_eq!(e["prior"], "unknown", "{e}");
+    // the estimated θ at the sensor follows the plant's true θ there
+    let truth = json_of(&curl(&d, "GET", &format!("{path}/simulation"), None, None).2);
+    let true_profile: Vec<f64> = truth["theta_profile"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(true_profile.len(), 26);
+    let profile = e["profile"].as_array().unwrap();
+    let cell = (0.13_f64 / (0.5 / 26.0)).floor() as usize;
+    let estimated = profile[cell]["theta"].as_f64().unwrap();
+    assert!(
+        (estimated - true_profile[cell]).abs() < 0.02,
+        "estimate {estimated} against truth {}",
+        true_profile[cell]
+    );
+    // the zone of the setpoints is the head band on the estimated soil, not
+    // on the nominal one: it differs from cycle to cycle as the soil is learnt
+    // and lies inside the estimated soil's [θr, θs]
+    let zones: Vec<f64> = setpoints
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["zone"][0][0].as_f64().unwrap())
+        .collect();
+    assert!(
+        zones.windows(2).any(|w| (w[0] - w[1]).abs() > 1e-9),
+        "{zones:?}"
+    );
+    for s in setpoints.as_array().unwrap() {
+        assert_ne!(s["status"], "fallback", "{s}");
+        let rate = s["rate"].as_f64().unwrap();
+        assert!((0.0..=1e-5).contains(&rate), "{s}");
+    }
+}

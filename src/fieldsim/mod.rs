@@ -162,7 +162,7 @@ impl FieldSimSettings {
         }
         let mut names = std::collections::HashSet::new();
         for (i, f) in s.fields.iter().enumerate() {
-            let Some(sim) = f.simulation else {
+            let Some(sim) = f.simulation.clone() else {
                 return bad(format!(
                     "fields[{i}] '{}' needs a 'simulation' section",
                     f.name
@@ -327,7 +327,7 @@ pub async fn run(
     let secret = private_secret(&settings.sim_data_dir, "webhook-secret")?;
     let mut fields = Vec::new();
     for spec in &settings.fields {
-        let sim = spec.simulation.unwrap_or_default();
+        let sim = spec.simulation.clone().unwrap_or_default();
         let now = clock.now();
         let start = sim.start.unwrap_or_else(|| {
             crate::service::clock::boundary_at_or_before(now, sim.measurement_interval_s)
@@ -345,6 +345,7 @@ pub async fn run(
                     heads: saved.heads,
                     amounts: saved.amounts,
                     theta: 0.0,
+                    theta_profile: Vec::new(),
                     infiltration_m: 0.0,
                     drainage_m: 0.0,
                     uptake_m: 0.0,
@@ -353,11 +354,11 @@ pub async fn run(
                 buffer = saved.buffer.into();
                 setpoint = saved.setpoint;
                 let day_zero = saved.day_zero.unwrap_or_else(|| midnight(saved.time));
-                SimulatedPlant::new(spec, sim, start, Some(&state))
+                SimulatedPlant::new(spec, sim.clone(), start, Some(&state))
                     .map_err(FieldSimError)?
                     .resume_at(day_zero, saved.started)
             }
-            None => SimulatedPlant::new(spec, sim, start, None).map_err(FieldSimError)?,
+            None => SimulatedPlant::new(spec, sim.clone(), start, None).map_err(FieldSimError)?,
         };
         fields.push(SimField {
             name: spec.name.clone(),
@@ -609,7 +610,7 @@ async fn work_loop(
     let tick = Duration::from_secs_f64(
         (s.fields
             .iter()
-            .filter_map(|f| f.simulation)
+            .filter_map(|f| f.simulation.clone())
             .map(|sim| sim.measurement_interval_s)
             .fold(f64::INFINITY, f64::min)
             / clock.speedup())

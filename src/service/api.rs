@@ -129,6 +129,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/fields/{id}/simulation", get(get_simulation))
         .route("/v1/fields/{id}/estimate", get(get_estimate))
         .route("/v1/fields/{id}/chart.svg", get(get_chart))
+        .route("/v1/fields/{id}/profile.svg", get(get_profile_chart))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
         .method_not_allowed_fallback(|| async {
             ApiError::new(
@@ -1007,6 +1008,71 @@ async fn get_chart(
             measurements: &measurements,
             setpoints: &setpoints,
             forecast: forecast.as_ref(),
+        })
+        .map_err(ApiError::internal)
+    })
+    .await?;
+    Ok(([(header::CONTENT_TYPE, "image/svg+xml")], svg).into_response())
+}
+
+/// A field's θ profile as SVG: the state estimate with its band against
+/// depth, and the true profile of a simulated field.
+async fn get_profile_chart(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    let svg = blocking(move || {
+        let stored: Option<super::engine::StoredEstimate> = engine
+            .store
+            .estimate(field.id)
+            .map_err(ApiError::internal)?
+            .and_then(|body| serde_json::from_str(&body).ok());
+        let estimate: Vec<(f64, f64, f64)> = match stored {
+            Some(s) => crate::estimate::Estimator::restore(s.snapshot)
+                .map_err(ApiError::internal)?
+                .profile()
+                .iter()
+                .map(|p| (p.depth, p.theta_mean, p.theta_sd))
+                .collect(),
+            None => Vec::new(),
+        };
+        let truth: Vec<(f64, f64)> = match engine
+            .simulation_state(&field)
+            .map_err(ApiError::internal)?
+        {
+            Some(p) => {
+                let n = p.theta_profile.len().max(1) as f64;
+                let dz = crate::soil::FieldSettings::default().depth / n;
+                p.theta_profile
+                    .iter()
+                    .enumerate()
+                    .map(|(i, t)| ((i as f64 + 0.5) * dz, *t))
+                    .collect()
+            }
+            None => Vec::new(),
+        };
+        let sensors: Vec<(String, f64)> = field
+            .spec
+            .effective_sensors()
+            .into_iter()
+            .map(|s| (s.id, s.depth))
+            .collect();
+        let zone = engine
+            .store
+            .recent_setpoints(field.id, 1)
+            .map_err(ApiError::internal)?
+            .first()
+            .and_then(|s| s.zone.first().copied())
+            .map(|z| (z[0], z[1], field.spec.crop.rooting_depth));
+        let title = format!("{}: θ profile", field.spec.name);
+        super::chart::render_profile(&super::chart::ProfileData {
+            title: &title,
+            estimate: &estimate,
+            truth: &truth,
+            sensors: &sensors,
+            zone,
         })
         .map_err(ApiError::internal)
     })

@@ -184,6 +184,132 @@ pub fn render(data: &ChartData<'_>) -> Result<String, String> {
     Ok(svg)
 }
 
+/// What the profile chart shows: the estimate's θ against depth with its
+/// ±2 sd band, and a simulated plant's true θ.
+pub struct ProfileData<'a> {
+    pub title: &'a str,
+    /// (depth [m], mean θ, sd) per cell, top first.
+    pub estimate: &'a [(f64, f64, f64)],
+    /// (depth [m], θ) per cell.
+    pub truth: &'a [(f64, f64)],
+    /// The sensors' (id, depth).
+    pub sensors: &'a [(String, f64)],
+    /// The zone in force now (θ), drawn as a band over the rooting depth.
+    pub zone: Option<(f64, f64, f64)>,
+}
+
+/// The SVG text of the profile chart: θ on x, depth downwards on y.
+pub fn render_profile(data: &ProfileData<'_>) -> Result<String, String> {
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (420, 520)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let values = data
+            .estimate
+            .iter()
+            .flat_map(|&(_, m, sd)| [m - 2.0 * sd, m + 2.0 * sd])
+            .chain(data.truth.iter().map(|t| t.1))
+            .chain(data.zone.iter().flat_map(|z| [z.0, z.1]))
+            .filter(|v| v.is_finite());
+        let (lo, hi) = values.fold((0.15f64, 0.25f64), |(a, b), v| (a.min(v), b.max(v)));
+        let depth = data
+            .estimate
+            .iter()
+            .map(|e| e.0)
+            .chain(data.truth.iter().map(|t| t.0))
+            .fold(0.5f64, f64::max);
+        let mut chart = ChartBuilder::on(&root)
+            .caption(data.title, ("sans-serif", 16))
+            .margin(10)
+            .x_label_area_size(36)
+            .y_label_area_size(50)
+            .build_cartesian_2d((lo - 0.01)..(hi + 0.01), -depth..0.0)
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .max_light_lines(2)
+            .x_desc("θ [m³/m³]")
+            .y_desc("depth [m]")
+            .y_label_formatter(&|y| format!("{:.2}", -y))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        let green = RGBColor(44, 160, 44);
+        if let Some((low, up, rooting)) = data.zone {
+            chart
+                .draw_series(std::iter::once(Rectangle::new(
+                    [(low, -rooting), (up, 0.0)],
+                    green.mix(0.15).filled(),
+                )))
+                .map_err(|e| e.to_string())?
+                .label("zone (root zone)")
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 4), (x + 16, y + 4)], green.mix(0.3).filled())
+                });
+        }
+        let orange = RGBColor(255, 127, 14);
+        if !data.estimate.is_empty() {
+            let band: Vec<(f64, f64)> = data
+                .estimate
+                .iter()
+                .map(|&(d, m, sd)| (m - 2.0 * sd, -d))
+                .chain(
+                    data.estimate
+                        .iter()
+                        .rev()
+                        .map(|&(d, m, sd)| (m + 2.0 * sd, -d)),
+                )
+                .collect();
+            chart
+                .draw_series(std::iter::once(Polygon::new(
+                    band,
+                    orange.mix(0.25).filled(),
+                )))
+                .map_err(|e| e.to_string())?
+                .label("estimate ± 2 sd")
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 4), (x + 16, y + 4)], orange.mix(0.4).filled())
+                });
+            chart
+                .draw_series(LineSeries::new(
+                    data.estimate.iter().map(|&(d, m, _)| (m, -d)),
+                    orange.stroke_width(2),
+                ))
+                .map_err(|e| e.to_string())?
+                .label("estimated θ")
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], orange));
+        }
+        if !data.truth.is_empty() {
+            chart
+                .draw_series(LineSeries::new(
+                    data.truth.iter().map(|&(d, t)| (t, -d)),
+                    BLACK.stroke_width(2),
+                ))
+                .map_err(|e| e.to_string())?
+                .label("true θ (simulated)")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
+        }
+        let blue = RGBColor(31, 119, 180);
+        for (id, d) in data.sensors {
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    format!("◂ {id}"),
+                    (hi + 0.01 - 0.25 * (hi - lo + 0.02), -d),
+                    ("sans-serif", 12).into_font().color(&blue),
+                )))
+                .map_err(|e| e.to_string())?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerLeft)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| e.to_string())?;
+        root.present().map_err(|e| e.to_string())?;
+    }
+    Ok(svg)
+}
+
 /// The window of a chart: the last `hours` before `now`.
 pub fn window(now: DateTime<Utc>, hours: f64) -> DateTime<Utc> {
     now - TimeDelta::milliseconds((hours * 3.6e6) as i64)

@@ -129,7 +129,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     let spec = &field.spec;
     let period = spec.control_period_s;
     let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
-    let settings = spec.mpc_settings();
+    let settings = spec.mpc_settings_with(inputs.estimate.as_ref().map(|e| &e.soil));
     let n = settings.horizon;
     let mut degraded = inputs.degraded.clone();
     let (weather, defaulted) = horizon_weather(inputs.forecast.as_ref(), period, now, n);
@@ -189,7 +189,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                 )
                 .map_err(|e| e.to_string()),
                 None => {
-                    let soil = spec.soil.parameters().unwrap_or(VanGenuchten::SANDY_LOAM);
+                    let soil = spec.soil.nominal().unwrap_or(VanGenuchten::SANDY_LOAM);
                     let head = soil.pressure_head_at(theta.clamp(
                         soil.residual_water_content + 1e-6,
                         soil.saturated_water_content - 1e-6,
@@ -205,13 +205,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                 }
             };
             match model {
-                Ok(mut model) => {
-                    if let Some(e) = &inputs.estimate {
-                        mpc.settings.theta_r = e.soil.residual_water_content;
-                        mpc.settings.theta_s = e.soil.saturated_water_content;
-                    }
-                    Some(mpc.solve(&mut model as &mut dyn PredictionModel))
-                }
+                Ok(mut model) => Some(mpc.solve(&mut model as &mut dyn PredictionModel)),
                 Err(e) => {
                     tracing::warn!(field = field.id, error = %e, "no Richards model");
                     None

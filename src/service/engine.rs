@@ -105,7 +105,8 @@ impl Engine {
 
     /// The simulated plant of `field`, created or resumed from storage.
     pub fn plant(&self, field: &Field) -> Result<Option<Arc<Mutex<SimulatedPlant>>>, EngineError> {
-        let (Actuator::Simulated, Some(spec)) = (&field.spec.actuator, field.spec.simulation)
+        let (Actuator::Simulated, Some(spec)) =
+            (&field.spec.actuator, field.spec.simulation.clone())
         else {
             return Ok(None);
         };
@@ -119,7 +120,7 @@ impl Engine {
         };
         let plant = SimulatedPlant::new(
             &field.spec,
-            spec,
+            spec.clone(),
             spec.start.unwrap_or(field.created_at),
             saved.as_ref(),
         )
@@ -197,7 +198,7 @@ impl Engine {
         };
         let (spec, day_zero) = {
             let p = plant.lock().unwrap_or_else(|e| e.into_inner());
-            (*p.spec(), p.day_zero())
+            (p.spec().clone(), p.day_zero())
         };
         let period = field.spec.control_period_s;
         let mut rng = ChaCha8Rng::seed_from_u64(
@@ -247,7 +248,9 @@ impl Engine {
         &self,
         field: &Field,
     ) -> Result<Option<(super::wire::Scenario, DateTime<Utc>)>, EngineError> {
-        let (Actuator::Simulated, Some(sim)) = (&field.spec.actuator, field.spec.simulation) else {
+        let (Actuator::Simulated, Some(sim)) =
+            (&field.spec.actuator, field.spec.simulation.clone())
+        else {
             return Ok(None);
         };
         Ok(self.plant(field)?.map(|p| {
@@ -294,6 +297,7 @@ impl Engine {
     /// first reading.
     fn new_estimator(&self, field: &Field, first: f64) -> Result<Estimator, String> {
         let prior = match &field.spec.soil {
+            soil if soil.is_unknown() => Prior::Unknown,
             super::wire::SoilSpec::Preset(name) => Prior::Texture(
                 name.parse::<crate::soil::Texture>()
                     .map_err(|e| e.to_string())?,

@@ -426,7 +426,7 @@ async fn plant_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) {
         let Ok(Some(field)) = state.engine.store.field(id) else {
             return;
         };
-        let Some(sim) = field.spec.simulation else {
+        let Some(sim) = field.spec.simulation.clone() else {
             return;
         };
         let next = clock::next_boundary(state.clock.now(), sim.measurement_interval_s);

@@ -174,14 +174,44 @@ impl Default for SoilSpec {
     }
 }
 
+/// The soil name of a field whose soil nobody has measured.
+pub const UNKNOWN_SOIL: &str = "unknown";
+
 impl SoilSpec {
+    /// Whether the field's soil is `unknown`: the estimator starts from the
+    /// mixture of the twelve texture priors.
+    pub fn is_unknown(&self) -> bool {
+        matches!(self, SoilSpec::Preset(name) if name == UNKNOWN_SOIL)
+    }
+
+    /// The soil the field is planned on before its estimate exists: the
+    /// declared one, or for `unknown` the mean of the twelve textures in
+    /// the estimator's parameters (ln Ks, ln α, ln(n − 1), θr, θs).
+    pub fn nominal(&self) -> Result<VanGenuchten, String> {
+        if self.is_unknown() {
+            let mut mean = [0.0; crate::estimate::prior::PARAMETERS];
+            for t in Texture::ALL {
+                let p = crate::estimate::prior::to_transformed(&t.parameters());
+                for (m, v) in mean.iter_mut().zip(p) {
+                    *m += v / Texture::ALL.len() as f64;
+                }
+            }
+            return Ok(crate::estimate::prior::to_soil(&mean));
+        }
+        self.parameters()
+    }
+
+    /// The declared soil's parameters (an error for `unknown`).
     pub fn parameters(&self) -> Result<VanGenuchten, String> {
         match self {
+            SoilSpec::Preset(name) if name == UNKNOWN_SOIL => {
+                Err("soil 'unknown' has no parameters until it is estimated".into())
+            }
             // the API takes the names exactly as written (the CLI is lenient)
             SoilSpec::Preset(name) => match Texture::ALL.into_iter().find(|t| t.name() == name) {
                 Some(t) => Ok(t.parameters()),
                 None => Err(format!(
-                    "soil: '{name}' is not a texture; one of {}",
+                    "soil: '{name}' is not a texture; one of {} or '{UNKNOWN_SOIL}'",
                     Texture::ALL.map(Texture::name).join(", ")
                 )),
             },
@@ -549,10 +579,15 @@ pub enum Actuator {
 }
 
 /// The simulated plant of a field with a simulated actuator.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimulationSpec {
     pub scenario: Scenario,
+    /// The plant's true soil, when it is not the field's declared one (a
+    /// texture or parameters; needed when the field's soil is `unknown`).
+    /// No controller reads it: the estimator has to find it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub soil: Option<SoilSpec>,
     /// Process noise level per measurement interval.
     pub process_noise: f64,
     pub measurement_noise: f64,
@@ -588,6 +623,10 @@ impl SimulationSpec {
         )
         .map_err(|e| e + " (at most control_period_s)")?;
         check_range("simulation.initial_head", self.initial_head, INITIAL_HEAD)?;
+        if let Some(soil) = &self.soil {
+            soil.parameters()
+                .map_err(|e| format!("simulation.soil: {e}"))?;
+        }
         if let Some(start) = self.start {
             check_time("simulation.start", start)?;
         }
@@ -599,6 +638,7 @@ impl Default for SimulationSpec {
     fn default() -> Self {
         SimulationSpec {
             scenario: Scenario::Dry,
+            soil: None,
             process_noise: 0.0,
             measurement_noise: 0.02,
             forecast_error: 0.2,
@@ -648,7 +688,7 @@ impl FieldSpec {
         if self.name.chars().any(char::is_control) {
             return Err("name must not contain control characters".into());
         }
-        let soil = self.soil.parameters()?;
+        let soil = self.soil.nominal()?;
         if self.model != ModelKind::Richards && !self.soil.is_sandy_loam() {
             return Err(format!(
                 "model '{}' is trained for sandy-loam only; use model 'richards' for another soil",
@@ -705,7 +745,15 @@ impl FieldSpec {
             }
         }
         match (&self.actuator, &self.simulation) {
-            (Actuator::Simulated, Some(sim)) => sim.validate(self.control_period_s)?,
+            (Actuator::Simulated, Some(sim)) => {
+                sim.validate(self.control_period_s)?;
+                if self.soil.is_unknown() && sim.soil.is_none() {
+                    return Err(
+                        "a simulated field of soil 'unknown' needs simulation.soil, the plant's true soil"
+                            .into(),
+                    );
+                }
+            }
             (Actuator::Simulated, None) => {
                 return Err("a simulated actuator needs a 'simulation' section".into());
             }
@@ -717,17 +765,29 @@ impl FieldSpec {
         Ok(())
     }
 
-    /// The zone-MPC settings of this field.
+    /// The zone-MPC settings of this field, on its declared soil.
     pub fn mpc_settings(&self) -> MpcSettings {
-        let soil = self.soil.parameters().unwrap_or(VanGenuchten::SANDY_LOAM);
+        self.mpc_settings_with(None)
+    }
+
+    /// The zone-MPC settings with the estimated soil, when there is one: its
+    /// [θr, θs] bound the prediction, and for a field of soil `unknown` the
+    /// zone is resolved on it too (a zone in heads follows the estimate).
+    pub fn mpc_settings_with(&self, estimated: Option<&VanGenuchten>) -> MpcSettings {
+        let declared = self.soil.nominal().unwrap_or(VanGenuchten::SANDY_LOAM);
+        let zone_soil = match estimated {
+            Some(e) if self.soil.is_unknown() && self.zone.resolve(e).is_ok() => *e,
+            _ => declared,
+        };
+        let bounds = estimated.copied().unwrap_or(declared);
         MpcSettings {
             u_max: self.irrigation_max,
             zone: self
                 .zone
-                .resolve(&soil)
-                .unwrap_or_else(|_| ZoneSettings::default_for(&soil)),
-            theta_r: soil.residual_water_content,
-            theta_s: soil.saturated_water_content,
+                .resolve(&zone_soil)
+                .unwrap_or_else(|_| ZoneSettings::default_for(&zone_soil)),
+            theta_r: bounds.residual_water_content,
+            theta_s: bounds.saturated_water_content,
             ..MpcSettings::default()
         }
     }
@@ -782,11 +842,7 @@ impl Field {
                 actuator.insert("url_hidden".into(), serde_json::Value::Bool(true));
             }
         }
-        let soil = self
-            .spec
-            .soil
-            .parameters()
-            .unwrap_or(VanGenuchten::SANDY_LOAM);
+        let soil = self.spec.soil.nominal().unwrap_or(VanGenuchten::SANDY_LOAM);
         if let Some(obj) = doc.as_object_mut() {
             obj.insert(
                 "effective_zone".into(),
@@ -941,6 +997,82 @@ mod tests {
                 .validate()
                 .unwrap_err()
                 .contains("measurement_wait_s")
+        );
+    }
+
+    #[test]
+    fn a_field_of_unknown_soil_is_planned_on_the_mean_texture_until_estimated() {
+        let unknown = FieldSpec {
+            soil: SoilSpec::Preset(UNKNOWN_SOIL.into()),
+            model: ModelKind::Richards,
+            actuator: Actuator::None,
+            simulation: None,
+            ..FieldSpec::demo()
+        };
+        assert_eq!(unknown.validate(), Ok(()));
+        // the nominal soil: the mean of the Carsel & Parrish table (θr 0.0723,
+        // θs 0.4117 in arithmetic mean; Ks, α, n − 1 geometric)
+        let nominal = unknown.soil.nominal().unwrap();
+        assert!((nominal.residual_water_content - 0.868 / 12.0).abs() < 1e-9);
+        assert!((nominal.saturated_water_content - 4.94 / 12.0).abs() < 1e-9);
+        let ks: f64 = Texture::ALL
+            .iter()
+            .map(|t| t.parameters().saturated_conductivity.ln())
+            .sum::<f64>()
+            / 12.0;
+        assert!((nominal.saturated_conductivity.ln() - ks).abs() < 1e-9);
+        assert!(unknown.soil.parameters().is_err());
+        // the default zone is the head band, on the estimated soil once there is one
+        let loam = Texture::Loam.parameters();
+        let z = unknown.mpc_settings_with(Some(&loam)).zone;
+        assert!((z.low0 - loam.water_content(-0.43)).abs() < 1e-12, "{z:?}");
+        assert!((z.up0 - loam.water_content(-0.27)).abs() < 1e-12);
+        let z = unknown.mpc_settings().zone;
+        assert!((z.low0 - nominal.water_content(-0.43)).abs() < 1e-12);
+        // a declared soil keeps its own zone whatever the estimate
+        let declared = FieldSpec {
+            soil: SoilSpec::Preset("sandy-loam".into()),
+            ..unknown.clone()
+        };
+        let z = declared.mpc_settings_with(Some(&loam)).zone;
+        assert_eq!((z.low0, z.up0), (0.18, 0.23));
+        // surrogates are refused; a simulated unknown field needs the plant's soil
+        let two_layer = FieldSpec {
+            model: ModelKind::TwoLayer,
+            ..unknown.clone()
+        };
+        assert!(two_layer.validate().unwrap_err().contains("richards"));
+        let simulated = FieldSpec {
+            actuator: Actuator::Simulated,
+            simulation: Some(SimulationSpec::default()),
+            ..unknown.clone()
+        };
+        assert!(
+            simulated
+                .validate()
+                .unwrap_err()
+                .contains("simulation.soil")
+        );
+        let with_plant = FieldSpec {
+            simulation: Some(SimulationSpec {
+                soil: Some(SoilSpec::Preset("loam".into())),
+                ..SimulationSpec::default()
+            }),
+            ..simulated.clone()
+        };
+        assert_eq!(with_plant.validate(), Ok(()));
+        let unknown_plant = FieldSpec {
+            simulation: Some(SimulationSpec {
+                soil: Some(SoilSpec::Preset(UNKNOWN_SOIL.into())),
+                ..SimulationSpec::default()
+            }),
+            ..simulated
+        };
+        assert!(
+            unknown_plant
+                .validate()
+                .unwrap_err()
+                .contains("simulation.soil")
         );
     }
 }

@@ -131,6 +131,9 @@ pub struct PlantState {
     pub amounts: [f64; 4],
     /// True θ at the primary sensor.
     pub theta: f64,
+    /// True θ of every cell, top first (cells of equal thickness).
+    #[serde(default)]
+    pub theta_profile: Vec<f64>,
     /// Water balance [m]: infiltration, drainage, uptake, runoff.
     pub infiltration_m: f64,
     pub drainage_m: f64,
@@ -171,7 +174,7 @@ impl SimulatedPlant {
         saved: Option<&PlantState>,
     ) -> Result<SimulatedPlant, String> {
         let settings = FieldSettings {
-            soil: field.soil.parameters()?,
+            soil: sim.soil.as_ref().unwrap_or(&field.soil).parameters()?,
             crop: field.crop(),
             initial_head: sim.initial_head,
             sampling_time: sim.measurement_interval_s,
@@ -241,6 +244,7 @@ impl SimulatedPlant {
             heads: self.plant.pressure_heads().to_vec(),
             amounts: self.plant.state().amounts,
             theta: self.plant.water_content(),
+            theta_profile: self.plant.water_contents(),
             infiltration_m: b.infiltration,
             drainage_m: b.drainage,
             uptake_m: b.uptake,
