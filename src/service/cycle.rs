@@ -439,7 +439,9 @@ pub fn assimilate(
 
 /// The surrogate window at `now`: for each of the last 20 periods, the
 /// supply (the setpoint in force, plus the rain of a simulated field) and
-/// θ measured at its end; before the first measurement, (0, first θ).
+/// θ measured at its end. Before the first measurement the window is
+/// synthesised from the state estimate ([`synthesised_history`]); without
+/// an estimate it is padded with the first θ and no supply.
 fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>) {
     let (now, recent) = (inputs.now, &inputs.recent);
     let period = inputs.field.spec.control_period_s;
@@ -478,6 +480,49 @@ fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>) {
         .position(Option::is_some)
         .unwrap_or(WINDOW - 1);
     let first_y = past_y[first].unwrap_or(current);
+    if first > 0
+        && let Some(history) = inputs.estimate.as_ref().and_then(|e| {
+            let rates: Vec<f64> = (0..=first)
+                .map(|k| {
+                    let mid = now - period_d * (WINDOW - 1 - k) as i32 - period_d / 2;
+                    recent
+                        .iter()
+                        .find(|s| s.valid_from <= mid && mid < s.valid_until)
+                        .map_or(0.0, |s| s.rate)
+                })
+                .collect();
+            let weather: Vec<WeatherStep> = (0..=first)
+                .map(|k| {
+                    let start = now - period_d * (WINDOW - k) as i32;
+                    let w = match inputs.scenario {
+                        Some((sc, d0)) => scenario_weather(sc, d0, start),
+                        None => climatology(start, SCENARIO_STEP),
+                    };
+                    WeatherStep {
+                        start_hour: w.start_hour,
+                        et0_mm: w.et0_mm * period / SCENARIO_STEP,
+                        precip_mm: w.precip_mm * period / SCENARIO_STEP,
+                    }
+                })
+                .collect();
+            synthesised_history(
+                e,
+                inputs.field.spec.crop(),
+                &rates,
+                &weather,
+                period,
+                first_y,
+            )
+        })
+    {
+        let mut y = history;
+        let mut last = first_y;
+        for v in &past_y[first..] {
+            last = v.unwrap_or(last);
+            y.push(last);
+        }
+        return (past_u, y);
+    }
     let mut y = Vec::with_capacity(WINDOW);
     let mut last = first_y;
     for (k, v) in past_y.iter().enumerate() {
@@ -490,6 +535,55 @@ fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>) {
         }
     }
     (past_u, y)
+}
+
+/// A past consistent with the estimate, for the samples before the first
+/// measurement: the estimated column (soil and profile) is run forward
+/// over the steps of `rates` (irrigation [m/s]) and `weather` (amounts per
+/// step of `period` s), and its fall over k steps is taken as the rise k
+/// steps back from `target`, the first measured θ. A field with no history
+/// is thus taken to have come to its θ at the pace its own soil dries at
+/// that θ, not to have stood still (which the surrogates read as a field
+/// that does not dry). Returns θ at the end of each of the steps before
+/// the last, oldest first; None when the column cannot be run.
+pub fn synthesised_history(
+    estimate: &EstimateView,
+    crop: crate::soil::Crop,
+    rates: &[f64],
+    weather: &[WeatherStep],
+    period: f64,
+    target: f64,
+) -> Option<Vec<f64>> {
+    let mut model = RichardsModel::from_state(
+        estimate.soil,
+        crop,
+        estimate.depth,
+        estimate.heads.clone(),
+        weather,
+        period,
+    )
+    .ok()?;
+    let mut ahead = vec![0.0; rates.len()];
+    model.predict(rates, &mut ahead).ok()?;
+    if !ahead.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    // θ now at the sensor (the cell the model reads), on the estimate
+    let cell = crate::soil::Column::new(estimate.soil, crop, estimate.depth, estimate.heads.len())
+        .ok()?
+        .sensor_cell();
+    let now = estimate.soil.water_content(*estimate.heads.get(cell)?);
+    let n = rates.len();
+    let top = estimate.soil.saturated_water_content;
+    Some(
+        (0..n.saturating_sub(1))
+            .map(|k| {
+                // sample k lies n − 1 − k steps before the target
+                let back = n - 1 - k;
+                (target + (now - ahead[back - 1])).min(top)
+            })
+            .collect(),
+    )
 }
 
 #[cfg(test)]
@@ -583,9 +677,9 @@ mod tests {
             wet.measurements = vec![reading("2026-06-02T11:55:00Z", 0.26)];
             let sp = decide(&wet, &m, &cancel());
             // zero to the QP's tolerance: less than a micrometre of water.
-            // (A surrogate without history starts from a flat padded window
-            // and still irrigates a wet field: issue 17's "blind first
-            // cycle", not yet fixed.)
+            // (A surrogate, trained on θ in the zone's range, still
+            // mispredicts a field this wet and irrigates it a little, even
+            // with a window synthesised from the estimate: issue 17.)
             if model == ModelKind::Richards {
                 assert!(sp.amount_mm < 1e-6, "{model:?}: {sp:?}");
             }
@@ -766,6 +860,84 @@ mod tests {
             observed_weather(&both, t).et0_mm,
             climatology(t, SCENARIO_STEP).et0_mm
         );
+    }
+
+    fn view_at(theta: f64) -> EstimateView {
+        let soil = VanGenuchten::SANDY_LOAM;
+        EstimateView {
+            heads: vec![soil.pressure_head_at(theta); 26],
+            soil,
+            depth: 0.5,
+        }
+    }
+
+    #[test]
+    fn a_synthesised_history_dries_down_to_the_first_measured_theta() {
+        let period = 7200.0;
+        let t0 = at("2026-06-01T00:00:00Z");
+        let weather: Vec<WeatherStep> = (0..20)
+            .map(|k| climatology(t0 + TimeDelta::hours(2 * k), period))
+            .collect();
+        let y = synthesised_history(
+            &view_at(0.2),
+            crate::soil::Crop::default(),
+            &[0.0; 20],
+            &weather,
+            period,
+            0.2,
+        )
+        .unwrap();
+        // the 19 samples before the first measured one
+        assert_eq!(y.len(), 19);
+        // no supply, only uptake and drainage: the past was wetter, and the
+        // nearer the measurement the nearer its θ
+        assert!(y.windows(2).all(|w| w[1] <= w[0] + 1e-12), "{y:?}");
+        assert!(y[0] > 0.2 + 1e-3 && y[18] >= 0.2, "{y:?}");
+        // the rise one step back is the column's own fall over one step
+        let soil = VanGenuchten::SANDY_LOAM;
+        let mut model = RichardsModel::from_state(
+            soil,
+            crate::soil::Crop::default(),
+            0.5,
+            view_at(0.2).heads,
+            &weather,
+            period,
+        )
+        .unwrap();
+        let mut ahead = [0.0; 1];
+        model.predict(&[0.0], &mut ahead).unwrap();
+        assert!(
+            (y[18] - (0.2 + (0.2 - ahead[0]))).abs() < 1e-9,
+            "{y:?} {ahead:?}"
+        );
+    }
+
+    #[test]
+    fn without_history_the_surrogate_window_comes_from_the_estimate() {
+        let mut i = inputs(ModelKind::TwoLayer);
+        i.measurements = vec![reading("2026-06-02T12:00:00Z", 0.2)];
+        // no estimate: the documented padding, flat and without supply
+        let (u, y) = window(&i, 0.2);
+        assert!(u.iter().all(|v| *v == 0.0) && y.iter().all(|v| *v == 0.2));
+        // with one: the estimated column's own dry-down, ending at the reading
+        i.estimate = Some(view_at(0.2));
+        let (u, y) = window(&i, 0.2);
+        assert_eq!((u.len(), y.len()), (WINDOW, WINDOW));
+        assert_eq!(y[WINDOW - 1], 0.2);
+        let weather: Vec<WeatherStep> = (0..WINDOW)
+            .map(|k| climatology(i.now - TimeDelta::hours(2 * (WINDOW - k) as i64), 7200.0))
+            .collect();
+        let expected = synthesised_history(
+            &view_at(0.2),
+            i.field.spec.crop(),
+            &[0.0; WINDOW],
+            &weather,
+            7200.0,
+            0.2,
+        )
+        .unwrap();
+        assert_eq!(&y[..WINDOW - 1], &expected[..], "{y:?}");
+        assert!(y[0] > y[WINDOW - 2], "{y:?}");
     }
 
     #[test]
