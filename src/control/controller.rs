@@ -9,7 +9,7 @@ use std::collections::VecDeque;
 use crate::weather::{WeatherStep, mm_to_rate};
 
 use super::model::{PredictionModel, RichardsModel, SurrogateModel};
-use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
+use super::mpc::{MpcSettings, Solution, ZoneMpc};
 
 /// The prediction model a controller uses.
 #[derive(Debug, Clone)]
@@ -116,7 +116,7 @@ impl Controller {
                         residuals.pop_front();
                     }
                     residuals.push_back(measured - predicted);
-                    model.bias = residuals.iter().sum::<f64>() / residuals.len() as f64;
+                    model.bias = super::policy::bias(residuals.make_contiguous());
                 }
                 model.push(supply, measured);
             }
@@ -145,24 +145,12 @@ impl Controller {
                 let mut model = RichardsModel::new(field, forecast);
                 self.mpc.solve(&mut model)
             }
-            (Model::Richards, None) => Solution {
-                plan: vec![0.0; n],
-                predicted: Vec::new(),
-                zone: (1..=n)
-                    .map(|k| self.mpc.settings.zone.bounds(k, n))
-                    .collect(),
-                status: SolveStatus::Fallback("the Richards model needs the field state".into()),
-                iterations: 0,
-                objective: f64::NAN,
-                solve_time: std::time::Duration::ZERO,
-            },
+            (Model::Richards, None) => super::policy::no_irrigation(
+                &self.mpc.settings,
+                "the Richards model needs the field state",
+            ),
         };
-        let first = solution.plan.first().copied().unwrap_or(0.0);
-        let setpoint = if first.is_finite() {
-            first.clamp(0.0, self.mpc.settings.u_max)
-        } else {
-            0.0
-        };
+        let setpoint = super::policy::applied_rate(&solution.plan, self.mpc.settings.u_max);
         Decision { setpoint, solution }
     }
 }

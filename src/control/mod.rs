@@ -7,6 +7,7 @@ pub mod controller;
 pub mod estimated;
 pub mod model;
 pub mod mpc;
+pub mod policy;
 pub mod zone;
 
 pub use closed_loop::{

@@ -8,7 +8,9 @@ use std::sync::atomic::AtomicBool;
 
 use chrono::{DateTime, TimeDelta, Timelike, Utc};
 
-use crate::control::{PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc};
+use crate::control::{
+    PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc, policy,
+};
 use crate::sim::{SCENARIO_STEP, scenario_series, scenario_weather};
 use crate::soil::{Field as Plant, FieldSettings, VanGenuchten};
 use crate::surrogate::evaluate::WINDOW;
@@ -234,9 +236,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                     residuals.push(m.theta - predicted);
                 }
             }
-            if !residuals.is_empty() {
-                bias = residuals.iter().sum::<f64>() / residuals.len() as f64;
-            }
+            bias = policy::bias(&residuals);
             model.bias = bias;
             model.rain = rain_rate.clone();
             let sol = mpc.solve(&mut model);
@@ -244,48 +244,17 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             Some(sol)
         }
     };
-    let Some(solution) = solution else {
-        degraded.push("solver-fallback".into());
-        let setpoint = Setpoint {
-            field_id: field.id,
-            time: now,
-            valid_from: now,
-            valid_until: now + period_d,
-            rate: 0.0,
-            amount_mm: 0.0,
-            plan: vec![0.0; n],
-            predicted_theta: Vec::new(),
-            zone: (1..=n)
-                .map(|k| {
-                    let (l, u) = settings.zone.bounds(k, n);
-                    [l, u]
-                })
-                .collect(),
-            model: spec.model,
-            status: "fallback".into(),
-            fallback_reason: Some(
-                if current.is_none() {
-                    "no measurement yet: no irrigation"
-                } else {
-                    "no prediction model: no irrigation"
-                }
-                .into(),
-            ),
-            iterations: 0,
-            solve_ms: 0.0,
-            degraded,
-            measured_at: None,
-            bias: 0.0,
-            predicted_next: None,
-        };
-        return setpoint;
-    };
-    let first = solution.plan.first().copied().unwrap_or(0.0);
-    let rate = if first.is_finite() {
-        first.clamp(0.0, settings.u_max)
-    } else {
-        0.0
-    };
+    let solution = solution.unwrap_or_else(|| {
+        policy::no_irrigation(
+            &settings,
+            if current.is_none() {
+                "no measurement yet: no irrigation"
+            } else {
+                "no prediction model: no irrigation"
+            },
+        )
+    });
+    let rate = policy::applied_rate(&solution.plan, settings.u_max);
     let (status, reason) = match &solution.status {
         SolveStatus::Converged => ("converged", None),
         SolveStatus::IterationCap => ("iteration-cap", None),
@@ -309,17 +278,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         valid_until: now + period_d,
         rate,
         amount_mm: rate_to_mm(rate, period),
-        plan: solution
-            .plan
-            .iter()
-            .map(|u| {
-                if u.is_finite() {
-                    u.clamp(0.0, settings.u_max)
-                } else {
-                    0.0
-                }
-            })
-            .collect(),
+        plan: policy::published_plan(&solution.plan, settings.u_max),
         predicted_theta: solution.predicted.clone(),
         zone: solution.zone.iter().map(|&(l, u)| [l, u]).collect(),
         model: spec.model,
