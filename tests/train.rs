@@ -230,7 +230,7 @@ fn closed_loop_on(models: &std::path::Path) {
     let two = ModelFile::load(&models.join("two-layer.json")).unwrap();
     for name in ["richards", "single-lstm", "two-layer"] {
         let mut make = |first: f64| match name {
-            "richards" => Controller::richards(mpc, dt),
+            "richards" => Controller::oracle(mpc, dt),
             "single-lstm" => Controller::surrogate(mpc, single.predictor(), 2, first, dt),
             _ => Controller::surrogate(mpc, two.predictor(), 2, first, dt),
         };

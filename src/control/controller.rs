@@ -73,11 +73,6 @@ impl Controller {
     /// for experiments only; no deployment has a plant's truth (see
     /// [`super::EstimatedRichards`] for the controller that estimates it).
     pub fn oracle(settings: MpcSettings, sampling_time: f64) -> Controller {
-        Controller::richards(settings, sampling_time)
-    }
-
-    /// The same as [`Controller::oracle`] (its older name).
-    pub fn richards(settings: MpcSettings, sampling_time: f64) -> Controller {
         Controller {
             mpc: ZoneMpc::new(settings),
             model: Model::Richards,

@@ -1,6 +1,7 @@
 //! The closed-loop experiments E4–E7 (MODEL.md §5): the zone MPC with the
-//! Richards model, the single LSTM and the two-layer network on a simulated
-//! field, scored by irrigation I_T, zone violation and solve time.
+//! oracle (the Richards model given the plant's true soil and state, a
+//! yardstick only), the single LSTM and the two-layer network on a
+//! simulated field, scored by irrigation I_T, zone violation and solve time.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -34,21 +35,23 @@ pub const BIAS_PERIOD: usize = 2;
 /// The prediction model of a controller.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ControllerKind {
-    Richards,
+    /// The Richards ZMPC given the plant's true soil and state: the
+    /// yardstick, which no deployment can run.
+    Oracle,
     SingleLstm,
     TwoLayer,
 }
 
 impl ControllerKind {
     pub const ALL: [ControllerKind; 3] = [
-        ControllerKind::Richards,
+        ControllerKind::Oracle,
         ControllerKind::SingleLstm,
         ControllerKind::TwoLayer,
     ];
 
     pub fn name(self) -> &'static str {
         match self {
-            ControllerKind::Richards => "Richards model",
+            ControllerKind::Oracle => "oracle (Richards model on the true soil and state)",
             ControllerKind::SingleLstm => "single LSTM",
             ControllerKind::TwoLayer => "two-layer network",
         }
@@ -56,7 +59,7 @@ impl ControllerKind {
 
     pub fn slug(self) -> &'static str {
         match self {
-            ControllerKind::Richards => "richards",
+            ControllerKind::Oracle => "oracle",
             ControllerKind::SingleLstm => "single-lstm",
             ControllerKind::TwoLayer => "two-layer",
         }
@@ -156,7 +159,7 @@ pub fn run(
     };
     let dt = settings.field.sampling_time;
     let mut make = |first: f64| match kind {
-        ControllerKind::Richards => Controller::richards(mpc, dt),
+        ControllerKind::Oracle => Controller::oracle(mpc, dt),
         ControllerKind::SingleLstm => {
             Controller::surrogate(mpc, models.single.predictor(), BIAS_PERIOD, first, dt)
         }
@@ -339,7 +342,7 @@ pub fn e5(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
         for kind in ControllerKind::ALL {
             let run = run(kind, &models, &scenario, options.seed)?;
             let paper = match kind {
-                ControllerKind::Richards => "".to_string(),
+                ControllerKind::Oracle => "".to_string(),
                 ControllerKind::SingleLstm => PAPER_E5[case].0.to_string(),
                 ControllerKind::TwoLayer => PAPER_E5[case].1.to_string(),
             };
