@@ -33,6 +33,8 @@ pub struct Controller {
     sampling_time: f64,
     /// Steps observed since the start.
     observed: usize,
+    /// The latest measured θ (the first one at the start).
+    last_measured: Option<f64>,
 }
 
 /// The controller's decision for one step.
@@ -65,6 +67,7 @@ impl Controller {
             },
             sampling_time,
             observed: 0,
+            last_measured: Some(first),
         }
     }
 
@@ -78,6 +81,7 @@ impl Controller {
             model: Model::Richards,
             sampling_time,
             observed: 0,
+            last_measured: None,
         }
     }
 
@@ -98,6 +102,9 @@ impl Controller {
     /// refits the bias on the bias-free one-step prediction of that step.
     pub fn observe(&mut self, irrigation: f64, precip_mm: f64, measured: f64) {
         self.observed += 1;
+        if measured.is_finite() {
+            self.last_measured = Some(measured);
+        }
         if let Model::Surrogate {
             model,
             residuals,
@@ -145,7 +152,73 @@ impl Controller {
                 "the Richards model needs the field state",
             ),
         };
-        let setpoint = super::policy::applied_rate(&solution.plan, self.mpc.settings.u_max);
+        let mut setpoint = super::policy::applied_rate(&solution.plan, self.mpc.settings.u_max);
+        // the first measurement and each one observed since are the samples
+        if matches!(self.model, Model::Surrogate { .. })
+            && super::policy::start_up_hold(
+                self.observed + 1,
+                crate::surrogate::evaluate::WINDOW,
+                self.last_measured,
+                self.mpc.settings.zone.bounds(1, n).1,
+            )
+        {
+            setpoint = 0.0;
+        }
         Decision { setpoint, solution }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::surrogate::ModelFile;
+    use crate::weather::WeatherStep;
+
+    fn two_layer() -> ModelFile {
+        ModelFile::from_json(
+            include_str!("../../models/two-layer.json"),
+            std::path::Path::new("two-layer"),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_surrogate_starting_above_its_zone_does_not_irrigate_until_it_has_a_window() {
+        for (theta, rain_mm) in [(0.2605, 0.0), (0.256, 1.5)] {
+            let mut c = Controller::surrogate(
+                MpcSettings::default(),
+                two_layer().predictor(),
+                2,
+                theta,
+                7200.0,
+            );
+            let forecast = vec![
+                WeatherStep {
+                    start_hour: 0.0,
+                    et0_mm: 0.33,
+                    precip_mm: rain_mm,
+                };
+                20
+            ];
+            let d = c.decide(&forecast, None);
+            assert_eq!(d.setpoint, 0.0, "θ {theta}: {:?}", d.solution.plan);
+            // a field below its zone is irrigated from the start
+            let mut dry = Controller::surrogate(
+                MpcSettings::default(),
+                two_layer().predictor(),
+                2,
+                0.15,
+                7200.0,
+            );
+            let forecast = vec![
+                WeatherStep {
+                    start_hour: 0.0,
+                    et0_mm: 0.33,
+                    precip_mm: 0.0,
+                };
+                20
+            ];
+            assert!(dry.decide(&forecast, None).setpoint > 0.0);
+        }
     }
 }

@@ -39,6 +39,22 @@ pub fn bias(residuals: &[f64]) -> f64 {
     }
 }
 
+/// A sound start for the surrogates (issue 17): while fewer than `window`
+/// samples have been measured, their prediction rests on a padded or
+/// synthesised past, and they mispredict fields outside the range they were
+/// trained on. Then a field whose measured θ lies above its zone's upper
+/// bound `zone_up` now is not irrigated this period: it is re-decided at
+/// the next one, and u_max refills a zone far faster than a crop empties it
+/// (72 mm per 2-h period at the default u_max).
+pub fn start_up_hold(
+    measured_samples: usize,
+    window: usize,
+    measured: Option<f64>,
+    zone_up: f64,
+) -> bool {
+    measured_samples < window && measured.is_some_and(|theta| theta > zone_up)
+}
+
 /// The fallback when there is nothing to solve with: no irrigation over the
 /// horizon, the zone in force, and the reason.
 pub fn no_irrigation(settings: &MpcSettings, reason: impl Into<String>) -> Solution {
@@ -77,6 +93,16 @@ mod tests {
         assert_eq!(bias(&[]), 0.0);
         assert!((bias(&[0.01, -0.03]) - (-0.01)).abs() < 1e-15);
         assert!((bias(&[0.02, f64::NAN]) - 0.02).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_field_above_its_zone_is_held_only_while_the_window_is_incomplete() {
+        assert!(start_up_hold(1, 20, Some(0.26), 0.23));
+        assert!(start_up_hold(19, 20, Some(0.231), 0.23));
+        assert!(!start_up_hold(20, 20, Some(0.26), 0.23));
+        assert!(!start_up_hold(1, 20, Some(0.23), 0.23));
+        assert!(!start_up_hold(1, 20, Some(0.17), 0.23));
+        assert!(!start_up_hold(1, 20, None, 0.23));
     }
 
     #[test]

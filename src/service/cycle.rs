@@ -173,6 +173,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     }
     let mut bias = 0.0;
     let mut one_step: Option<SurrogateModel> = None;
+    let measured_samples = measured_samples(inputs);
     let solution = match (current, spec.model) {
         (None, _) => None,
         (Some(theta), ModelKind::Richards) => {
@@ -254,7 +255,21 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             },
         )
     });
-    let rate = policy::applied_rate(&solution.plan, settings.u_max);
+    let mut rate = policy::applied_rate(&solution.plan, settings.u_max);
+    let mut plan = policy::published_plan(&solution.plan, settings.u_max);
+    if spec.model != ModelKind::Richards
+        && policy::start_up_hold(
+            measured_samples,
+            WINDOW,
+            fresh.map(|m| m.theta),
+            settings.zone.bounds(1, n).1,
+        )
+    {
+        rate = 0.0;
+        if let Some(first) = plan.first_mut() {
+            *first = 0.0;
+        }
+    }
     let (status, reason) = match &solution.status {
         SolveStatus::Converged => ("converged", None),
         SolveStatus::IterationCap => ("iteration-cap", None),
@@ -278,7 +293,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         valid_until: now + period_d,
         rate,
         amount_mm: rate_to_mm(rate, period),
-        plan: policy::published_plan(&solution.plan, settings.u_max),
+        plan,
         predicted_theta: solution.predicted.clone(),
         zone: solution.zone.iter().map(|&(l, u)| [l, u]).collect(),
         model: spec.model,
@@ -394,6 +409,21 @@ pub fn assimilate(
         resets,
         flags,
     }
+}
+
+/// How many of the window's samples have a measurement at their end (the
+/// last one: the current θ).
+fn measured_samples(inputs: &CycleInputs) -> usize {
+    let period = inputs.field.spec.control_period_s;
+    let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
+    (0..WINDOW)
+        .filter(|&k| {
+            let end = inputs.now - period_d * (WINDOW - 1 - k) as i32;
+            inputs
+                .before(end)
+                .is_some_and(|m| seconds(end - m.time) <= period)
+        })
+        .count()
 }
 
 /// The surrogate window at `now`: for each of the last 20 periods, the
@@ -897,6 +927,35 @@ mod tests {
         .unwrap();
         assert_eq!(&y[..WINDOW - 1], &expected[..], "{y:?}");
         assert!(y[0] > y[WINDOW - 2], "{y:?}");
+    }
+
+    #[test]
+    fn a_surrogate_without_history_does_not_irrigate_a_field_above_its_zone() {
+        let m = models();
+        // the cases: θ 0.2605 under dry weather, 0.256 under rain
+        for (theta, rain_mm) in [(0.2605, 0.0), (0.256, 1.5)] {
+            for with_estimate in [false, true] {
+                let mut wet = inputs(ModelKind::TwoLayer);
+                wet.measurements = vec![reading("2026-06-02T11:55:00Z", theta)];
+                wet.forecast = Some(Forecast {
+                    issued_at: wet.now,
+                    start: wet.now,
+                    step_s: 7200.0,
+                    et0_mm: vec![0.33; 24],
+                    precip_mm: vec![rain_mm; 24],
+                });
+                wet.estimate = with_estimate.then(|| view_at(theta));
+                let sp = decide(&wet, &m, &cancel());
+                assert_eq!(sp.rate, 0.0, "θ {theta}: {sp:?}");
+                assert_eq!(sp.plan[0], 0.0);
+                // a dry field in the same state of history is irrigated
+                let mut dry = wet.clone();
+                dry.measurements = vec![reading("2026-06-02T11:55:00Z", 0.15)];
+                dry.estimate = with_estimate.then(|| view_at(0.15));
+                dry.forecast.as_mut().unwrap().precip_mm = vec![0.0; 24];
+                assert!(decide(&dry, &m, &cancel()).rate > 0.0);
+            }
+        }
     }
 
     #[test]
