@@ -131,7 +131,15 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     let spec = &field.spec;
     let period = spec.control_period_s;
     let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
-    let settings = spec.mpc_settings_with(inputs.estimate.as_ref().map(|e| &e.soil));
+    // the Richards model plans on the estimated soil; the surrogates know
+    // the soil they were trained on
+    let settings = spec.mpc_settings_with(
+        inputs
+            .estimate
+            .as_ref()
+            .filter(|_| spec.model == ModelKind::Richards)
+            .map(|e| &e.soil),
+    );
     let n = settings.horizon;
     let mut degraded = inputs.degraded.clone();
     let (weather, defaulted) = horizon_weather(inputs.forecast.as_ref(), period, now, n);
@@ -340,6 +348,8 @@ pub struct Assimilated {
     /// Resets to the prior, counting those passed on by the start.
     pub resets: u64,
     pub flags: Vec<String>,
+    /// Why each reset of this run happened (time: error).
+    pub reset_reasons: Vec<String>,
 }
 
 /// Brings `est` from `clock` through `readings` (every sensor, oldest
@@ -363,6 +373,7 @@ pub fn assimilate(
     primary: &str,
 ) -> Assimilated {
     let mut flags = Vec::new();
+    let mut flags_detail = Vec::new();
     let mut settled = None;
     let mut i = readings.partition_point(|m| m.time <= clock);
     while i < readings.len() {
@@ -395,7 +406,7 @@ pub fn assimilate(
             outcome = est.update(&values).map(|_| ());
         }
         if let Err(e) = outcome {
-            tracing::warn!(error = %e, at = %t, "state estimate reset to its prior");
+            flags_detail.push(format!("{t}: {e}"));
             est.reset_to_prior();
             resets += 1;
             if !flags.iter().any(|f| f == "estimator-reset") {
@@ -408,6 +419,7 @@ pub fn assimilate(
         settled: settled.unwrap_or_else(|| (clock, est.snapshot(), resets)),
         resets,
         flags,
+        reset_reasons: flags_detail,
     }
 }
 

@@ -412,8 +412,8 @@ impl Engine {
             settle_before,
             &primary,
         );
-        if !done.flags.is_empty() {
-            tracing::warn!(field = field.id, "state estimate reset to its prior");
+        for reason in &done.reset_reasons {
+            tracing::warn!(field = field.id, reason = %reason, "state estimate reset to its prior");
         }
         let (settled_time, settled_snapshot, settled_resets) = done.settled;
         let body = serde_json::to_string(&StoredEstimate {
