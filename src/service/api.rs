@@ -906,16 +906,12 @@ async fn get_estimate(
     let field = load_field(&state, &id).await?;
     let engine = state.engine.clone();
     blocking(move || {
-        let stored: Option<super::engine::StoredEstimate> = engine
-            .store
-            .estimate(field.id)
+        let Some((stored, est)) = engine
+            .current_estimate(&field)
             .map_err(ApiError::internal)?
-            .and_then(|body| serde_json::from_str(&body).ok());
-        let Some(stored) = stored else {
+        else {
             return Ok(Json(serde_json::json!({ "estimated": false })));
         };
-        let est =
-            crate::estimate::Estimator::restore(stored.snapshot).map_err(ApiError::internal)?;
         let profile: Vec<serde_json::Value> = est
             .profile()
             .iter()
@@ -1024,14 +1020,11 @@ async fn get_profile_chart(
     let field = load_field(&state, &id).await?;
     let engine = state.engine.clone();
     let svg = blocking(move || {
-        let stored: Option<super::engine::StoredEstimate> = engine
-            .store
-            .estimate(field.id)
+        let estimate: Vec<(f64, f64, f64)> = match engine
+            .current_estimate(&field)
             .map_err(ApiError::internal)?
-            .and_then(|body| serde_json::from_str(&body).ok());
-        let estimate: Vec<(f64, f64, f64)> = match stored {
-            Some(s) => crate::estimate::Estimator::restore(s.snapshot)
-                .map_err(ApiError::internal)?
+        {
+            Some((_, est)) => est
                 .profile()
                 .iter()
                 .map(|p| (p.depth, p.theta_mean, p.theta_sd))

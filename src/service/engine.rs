@@ -438,6 +438,24 @@ impl Engine {
         ))
     }
 
+    /// The field's current state estimate as its latest cycle left it (the
+    /// stored record and the restored filter); None before the first.
+    pub fn current_estimate(
+        &self,
+        field: &Field,
+    ) -> Result<Option<(StoredEstimate, Estimator)>, EngineError> {
+        let Some(stored) = self
+            .store
+            .estimate(field.id)?
+            .and_then(|body| serde_json::from_str::<StoredEstimate>(&body).ok())
+        else {
+            return Ok(None);
+        };
+        let est = Estimator::restore(stored.snapshot.clone())
+            .map_err(|e| EngineError::Plant(field.id, format!("stored estimate: {e}")))?;
+        Ok(Some((stored, est)))
+    }
+
     /// One control cycle: a simulated field's plant and weather service
     /// first, then load → decide → store.
     pub fn control_cycle(
