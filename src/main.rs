@@ -52,8 +52,14 @@ enum Command {
     /// Generate (or load cached) data and train the five surrogate networks.
     Train {
         /// Soil texture the models are trained for.
-        #[arg(long, default_value = "sandy-loam")]
+        #[arg(long, default_value = "sandy-loam", conflicts_with = "soil_params")]
         soil: String,
+        /// A soil given by its parameters instead of a texture:
+        /// `ks=…,alpha=…,n=…,theta_r=…,theta_s=…` (SI, α in 1/m). The data
+        /// sets' water-content ranges are sandy loam's carried to it by
+        /// effective saturation.
+        #[arg(long, value_name = "PARAMS")]
+        soil_params: Option<String>,
         /// Folder for the model files and the training report.
         #[arg(long, default_value = "models")]
         out: PathBuf,
@@ -222,14 +228,25 @@ fn main() -> ExitCode {
         })(),
         Command::Train {
             soil,
+            soil_params,
             out,
             seed,
             quick,
             cache,
             window_noise,
         } => (|| {
-            let soil: Texture = soil.parse()?;
-            train(soil, &out, seed, quick, window_noise, &cache)
+            let (parameters, name) = match soil_params {
+                Some(text) => {
+                    let (parameters, _) = rootzone::experiment::estimated::parse_soil(&text)
+                        .map_err(|e| anyhow::anyhow!("--soil-params: {e}"))?;
+                    (parameters, text.replace(' ', ""))
+                }
+                None => {
+                    let texture: Texture = soil.parse()?;
+                    (texture.parameters(), texture.name().to_string())
+                }
+            };
+            train(&name, parameters, &out, seed, quick, window_noise, &cache)
         })(),
         Command::Experiment {
             id,
@@ -306,7 +323,8 @@ fn parse_window_noise(text: &str) -> Result<f64, String> {
 
 /// `rootzone train`: one progress bar per network.
 fn train(
-    soil: Texture,
+    soil_name: &str,
+    soil: rootzone::soil::VanGenuchten,
     out: &std::path::Path,
     seed: u64,
     quick: bool,
@@ -322,6 +340,7 @@ fn train(
     if let Some(level) = window_noise {
         plan.window_noise = (level > 0.0).then_some(level);
     }
+    plan.soil = soil;
     let bars = MultiProgress::new();
     let style = ProgressStyle::with_template(
         "{prefix:>18} [{bar:30}] {pos:>3}/{len:3} epochs {msg} ({elapsed})",
@@ -329,7 +348,7 @@ fn train(
     .expect("a valid progress template")
     .progress_chars("=> ");
     let mut current: Option<ProgressBar> = None;
-    let outcome = run_training(&plan, soil, out, cache, |event| match event {
+    let outcome = run_training(&plan, soil_name, out, cache, |event| match event {
         ProgressEvent::Stage {
             network,
             what,

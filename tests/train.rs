@@ -285,3 +285,92 @@ fn closed_loop_on(models: &std::path::Path) {
         );
     }
 }
+
+#[test]
+fn training_for_given_soil_parameters_learns_that_soil() {
+    use rootzone::soil::VanGenuchten;
+    use rootzone::surrogate::pipeline::validation_spec_for;
+    let dir = tempfile::tempdir().unwrap();
+    let (models, cache) = (dir.path().join("models"), dir.path().join("cache"));
+    let s = |p: &PathBuf| p.display().to_string();
+    // a loam-like soil no texture is: Carsel & Parrish loam with α × 1.2
+    let params = "ks=2.889e-6,alpha=4.32,n=1.56,theta_r=0.078,theta_s=0.43";
+    let out = rootzone(&[
+        "train",
+        "--quick",
+        "--soil-params",
+        params,
+        "--out",
+        &s(&models),
+        "--cache",
+        &s(&cache),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let two = ModelFile::load(&models.join("two-layer.json")).unwrap();
+    assert_eq!(two.metadata.soil, params);
+    // the output scaling is sandy loam's [0.12, 0.41] at the same effective
+    // saturation of this soil (sandy loam: θr 0.065, θs 0.41)
+    let se = |t: f64| (t - 0.065) / (0.41 - 0.065);
+    let theta = |t: f64| 0.078 + se(t) * (0.43 - 0.078);
+    assert!((two.scaling.output.y_min - theta(0.12)).abs() < 1e-12);
+    assert!((two.scaling.output.y_max - theta(0.41)).abs() < 1e-12);
+    // it predicts that soil: scores on fresh data of it, against the same
+    // architecture untrained
+    let soil = VanGenuchten {
+        saturated_conductivity: 2.889e-6,
+        alpha: 4.32,
+        n: 1.56,
+        residual_water_content: 0.078,
+        saturated_water_content: 0.43,
+        specific_storage: 1e-6,
+    };
+    let spec = validation_spec_for(3, 600, 77, &soil);
+    let (low, high) = spec.excitation.range();
+    assert!((low - theta(0.12)).abs() < 1e-12 && (high - theta(0.40)).abs() < 1e-12);
+    let series = load_or_generate(
+        &spec,
+        "loam-like",
+        &FieldSettings {
+            soil,
+            ..FieldSettings::default()
+        },
+        training_weather().steps(),
+        &cache,
+    )
+    .unwrap();
+    let trained = nrmse_scores(&mut two.predictor(), &series);
+    let Surrogate::TwoLayer(net) = &two.model else {
+        panic!("two-layer.json holds a two-layer model")
+    };
+    let fresh = TwoLayerNet {
+        sub_models: [0, 1, 2]
+            .map(|i| SequenceNet::new(&net.sub_models[i].hidden_sizes(), 200 + i as u64)),
+        combiner: Mlp::new(net.combiner.hidden(), 203),
+    };
+    let untrained = nrmse_scores(
+        &mut Predictor::new(Surrogate::TwoLayer(fresh), two.scaling),
+        &series,
+    );
+    for (u, t) in untrained.iter().zip(trained) {
+        assert!(
+            *u > 3.0 * t,
+            "untrained {untrained:?} vs trained {trained:?}"
+        );
+    }
+    // bad parameters: exit 2 naming the parameter
+    let out = rootzone(&[
+        "train",
+        "--quick",
+        "--soil-params",
+        "ks=1e-6,alpha=4,n=0.9,theta_r=0.07,theta_s=0.43",
+        "--out",
+        &s(&models),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--soil-params") && err.contains('n'), "{err}");
+}

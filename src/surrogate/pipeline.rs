@@ -37,7 +37,7 @@ use super::train::{
     EpochReport, JointTwoLayer, SequenceData, Split, TabularData, TrainConfig, TrainError,
     TrainReport, Trainable, combiner_data, combiner_data_closed_loop, holdout, train,
 };
-use crate::soil::{FieldSettings, Texture};
+use crate::soil::{FieldSettings, VanGenuchten};
 use crate::weather::{DRY_SCENARIO, WeatherSeries};
 
 /// Horizons of the open-loop scores.
@@ -55,6 +55,10 @@ pub const TWO_LAYER_FILE: &str = "two-layer.json";
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrainPlan {
     pub seed: u64,
+    /// The soil the networks are trained for (default sandy loam, the
+    /// paper's). The water-content ranges of the data sets (MODEL.md §3,
+    /// given for sandy loam) are carried to it by effective saturation.
+    pub soil: VanGenuchten,
     /// Training samples per sub-model set and of the impulse set.
     pub sub_model_samples: usize,
     pub impulse_samples: usize,
@@ -93,6 +97,7 @@ impl TrainPlan {
         };
         TrainPlan {
             seed,
+            soil: VanGenuchten::SANDY_LOAM,
             sub_model_samples: 30_000,
             impulse_samples: 100_000,
             validation_samples: 5_000,
@@ -132,6 +137,7 @@ impl TrainPlan {
         };
         TrainPlan {
             seed,
+            soil: VanGenuchten::SANDY_LOAM,
             sub_model_samples: 1_500,
             impulse_samples: 2_500,
             validation_samples: 600,
@@ -157,7 +163,7 @@ impl TrainPlan {
 
     /// Training set of sub-model `i` (0..3).
     pub fn sub_model_data(&self, i: usize) -> DatasetSpec {
-        let (low, high) = SUB_MODEL_RANGES[i];
+        let (low, high) = range_for(SUB_MODEL_RANGES[i], &self.soil);
         DatasetSpec {
             name: format!("m{}-train", i + 1),
             excitation: Excitation::MultiLevel { low, high },
@@ -171,9 +177,9 @@ impl TrainPlan {
     pub fn impulse_data(&self) -> DatasetSpec {
         DatasetSpec {
             name: "whole-train".into(),
-            excitation: Excitation::Impulse {
-                low: WHOLE_RANGE.0,
-                high: WHOLE_RANGE.1,
+            excitation: {
+                let (low, high) = range_for(WHOLE_RANGE, &self.soil);
+                Excitation::Impulse { low, high }
             },
             samples: self.impulse_samples,
             noise_fraction: 0.1,
@@ -182,22 +188,57 @@ impl TrainPlan {
     }
 }
 
+/// A sandy-loam water-content range carried to `soil` by effective
+/// saturation Se = (θ − θr)/(θs − θr); sandy loam's own is returned as is.
+pub fn range_for(range: (f64, f64), soil: &VanGenuchten) -> (f64, f64) {
+    (theta_for(range.0, soil), theta_for(range.1, soil))
+}
+
+/// A sandy-loam water content carried to `soil` at the same effective
+/// saturation.
+pub fn theta_for(theta: f64, soil: &VanGenuchten) -> f64 {
+    let sl = VanGenuchten::SANDY_LOAM;
+    if *soil == sl {
+        return theta;
+    }
+    let se = (theta - sl.residual_water_content)
+        / (sl.saturated_water_content - sl.residual_water_content);
+    soil.residual_water_content + se * (soil.saturated_water_content - soil.residual_water_content)
+}
+
+/// The scaling of networks for `soil`: the input scaling as shipped, the
+/// output range [0.12, 0.41] of sandy loam carried to the soil.
+pub fn scaling_for(soil: &VanGenuchten) -> Scaling {
+    let mut s = Scaling::default();
+    s.output.y_min = theta_for(s.output.y_min, soil);
+    s.output.y_max = theta_for(s.output.y_max, soil);
+    s
+}
+
 /// Validation set `which` (0..3: sub-model ranges, multi-level; 3: whole
 /// range, impulse) with output noise 0.2 and the given seed.
 pub fn validation_spec(which: usize, samples: usize, seed: u64) -> DatasetSpec {
+    validation_spec_for(which, samples, seed, &VanGenuchten::SANDY_LOAM)
+}
+
+/// [`validation_spec`] with its range carried to `soil`.
+pub fn validation_spec_for(
+    which: usize,
+    samples: usize,
+    seed: u64,
+    soil: &VanGenuchten,
+) -> DatasetSpec {
     let (name, excitation) = if which < 3 {
-        let (low, high) = SUB_MODEL_RANGES[which];
+        let (low, high) = range_for(SUB_MODEL_RANGES[which], soil);
         (
             format!("m{}-validation", which + 1),
             Excitation::MultiLevel { low, high },
         )
     } else {
+        let (low, high) = range_for(WHOLE_RANGE, soil);
         (
             "whole-validation".to_string(),
-            Excitation::Impulse {
-                low: WHOLE_RANGE.0,
-                high: WHOLE_RANGE.1,
-            },
+            Excitation::Impulse { low, high },
         )
     };
     DatasetSpec {
@@ -347,30 +388,43 @@ fn summary(
     }
 }
 
-/// Runs the whole plan for the soil `soil`, writing the model files and
-/// `training-report.md` into `out_dir`, caching data in `cache_dir`.
+/// Runs the whole plan for its soil, named `soil_name` (a texture name or
+/// `ks=…,alpha=…,n=…,theta_r=…,theta_s=…`, recorded in the model files),
+/// writing the model files and `training-report.md` into `out_dir`,
+/// caching data in `cache_dir`.
 pub fn run_training(
     plan: &TrainPlan,
-    soil: Texture,
+    soil_name: &str,
     out_dir: &Path,
     cache_dir: &Path,
     mut progress: impl FnMut(ProgressEvent),
 ) -> Result<TrainingOutcome, PipelineError> {
     let start = Instant::now();
     let settings = FieldSettings {
-        soil: soil.parameters(),
+        soil: plan.soil,
         ..FieldSettings::default()
     };
     let weather = training_weather();
-    let soil_name = soil.name();
-    let scaling = Scaling::default();
+    // the data cache is keyed by a file-name-safe form of the soil's name
+    let cache_name: String = soil_name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    let cache_name = cache_name.as_str();
+    let scaling = scaling_for(&plan.soil);
     let get = |spec: &DatasetSpec, progress: &mut dyn FnMut(ProgressEvent)| {
         progress(ProgressEvent::Stage {
             network: "data",
             what: format!("{} ({} samples)", spec.name, spec.samples),
             max_epochs: 0,
         });
-        load_or_generate(spec, soil_name, &settings, weather.steps(), cache_dir)
+        load_or_generate(spec, cache_name, &settings, weather.steps(), cache_dir)
     };
     let split = |samples: Vec<usize>| holdout(&samples, plan.holdout);
     // appends a series and gives its input windows the plan's noise, drawn
@@ -542,13 +596,14 @@ pub fn run_training(
     let mut scores = Vec::new();
     let mut files = Vec::new();
     let validation = |which: usize, progress: &mut dyn FnMut(ProgressEvent)| {
-        let spec = validation_spec(which, plan.validation_samples, plan.seed);
+        let spec = validation_spec_for(which, plan.validation_samples, plan.seed, &plan.soil);
         progress(ProgressEvent::Stage {
             network: "data",
             what: format!("{} ({} samples)", spec.name, spec.samples),
             max_epochs: 0,
         });
-        load_or_generate(&spec, soil_name, &settings, weather.steps(), cache_dir).map(|s| (spec, s))
+        load_or_generate(&spec, cache_name, &settings, weather.steps(), cache_dir)
+            .map(|s| (spec, s))
     };
     let mut write = |file: &str,
                      model: Surrogate,
