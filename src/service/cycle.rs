@@ -356,10 +356,13 @@ pub struct Assimilated {
 /// first; those at or before `clock` are skipped): between reading times a
 /// forecast per interval of at most `period` s with the irrigation in force
 /// (`setpoints`) and the weather of `weather_at`, at each time an update
-/// with that time's readings. A reading naming no sensor is `primary`'s;
-/// readings of unknown sensors are skipped. A diverged estimator is reset
-/// to its prior and flagged `estimator-reset`. A pure function: the daemon
-/// and its tests run it on plain data.
+/// with that time's readings. A gap between readings longer than
+/// `max_gap_s` (a sensor or the daemon down for days) is forecast over its
+/// last `max_gap_s` only, so the work stays bounded and the identified soil
+/// is kept. A reading naming no sensor is `primary`'s; readings of unknown
+/// sensors are skipped. A diverged estimator is reset to its prior and
+/// flagged `estimator-reset`. A pure function: the daemon and its tests run
+/// it on plain data.
 #[allow(clippy::too_many_arguments)]
 pub fn assimilate(
     est: &mut Estimator,
@@ -369,6 +372,7 @@ pub fn assimilate(
     setpoints: &[Setpoint],
     weather_at: &dyn Fn(DateTime<Utc>) -> WeatherStep,
     period: f64,
+    max_gap_s: f64,
     settle_before: DateTime<Utc>,
     primary: &str,
 ) -> Assimilated {
@@ -384,6 +388,10 @@ pub fn assimilate(
         let group = &readings[i..][..readings[i..].iter().take_while(|m| m.time == t).count()];
         i += group.len();
         let mut outcome: Result<(), EstimateError> = Ok(());
+        let max_gap = TimeDelta::milliseconds((max_gap_s.max(period) * 1e3) as i64);
+        if t - clock > max_gap {
+            clock = t - max_gap;
+        }
         while clock < t && outcome.is_ok() {
             let dt = seconds(t - clock).min(period);
             let rate = setpoints
@@ -776,6 +784,7 @@ mod tests {
                 &[],
                 &weather,
                 7200.0,
+                86_400.0,
                 at(settle),
                 "root",
             )
@@ -811,6 +820,37 @@ mod tests {
         assert_eq!(again.mean_heads(), on_time.mean_heads());
     }
 
+    #[test]
+    fn a_long_gap_is_forecast_over_its_last_span_only() {
+        let weather = |t| climatology(t, SCENARIO_STEP);
+        let run = |first: &str| {
+            let mut est = estimator();
+            let readings = [
+                sensor_reading(first, "root", 0.22),
+                sensor_reading("2026-06-12T00:00:00Z", "root", 0.19),
+            ];
+            let done = assimilate(
+                &mut est,
+                at(first) - TimeDelta::milliseconds(1),
+                0,
+                &readings,
+                &[],
+                &weather,
+                7200.0,
+                86_400.0,
+                at("2026-06-12T00:00:00Z"),
+                "root",
+            );
+            assert_eq!(done.clock, at("2026-06-12T00:00:00Z"));
+            est
+        };
+        // ten days without a reading cost what one day does, and end alike
+        let long = run("2026-06-02T00:00:00Z");
+        let short = run("2026-06-11T00:00:00Z");
+        assert_eq!(long.mean_heads(), short.mean_heads());
+        assert_eq!(long.soil(), short.soil());
+    }
+
     /// The estimate after the first reading of `all` alone.
     fn late_snapshot(all: &[Measurement]) -> EstimatorSnapshot {
         let mut est = estimator();
@@ -823,6 +863,7 @@ mod tests {
             &[],
             &weather,
             7200.0,
+            86_400.0,
             at("2026-06-02T01:00:00Z"),
             "root",
         );

@@ -28,10 +28,6 @@ pub struct Models {
     pub lstm: ModelFile,
 }
 
-fn seconds(d: TimeDelta) -> f64 {
-    d.num_milliseconds() as f64 / 1000.0
-}
-
 /// A field's stored state estimate: the estimator's snapshot, the clock
 /// time it has reached, how often it was reset, and the settled estimate
 /// the next cycle starts from.
@@ -346,17 +342,14 @@ impl Engine {
             .store
             .estimate(field.id)?
             .and_then(|body| serde_json::from_str(&body).ok());
-        let too_old = |t: DateTime<Utc>| seconds(now - t) > self.max_catch_up_s.max(period);
         let restored = stored.and_then(|s| {
             // from the settled state; an estimate stored without one starts
-            // from itself
+            // from itself. However old it is, the soil it has learnt is
+            // kept: a long gap is forecast over its last catch-up span only.
             let (time, snapshot, resets) = match s.settled {
                 Some(c) => (c.time, c.snapshot, c.resets),
                 None => (s.time, s.snapshot, s.resets),
             };
-            if too_old(time) {
-                return None;
-            }
             Some((Estimator::restore(snapshot).ok()?, time, resets))
         });
         let (mut est, clock, resets) = match restored {
@@ -378,9 +371,12 @@ impl Engine {
                 (est, first.time - TimeDelta::milliseconds(1), 0)
             }
         };
+        // the readings since, within the catch-up span (older ones would be
+        // forecast over nothing and updated on stale weather)
+        let span = TimeDelta::milliseconds((self.max_catch_up_s.max(period) * 1e3) as i64);
         let readings = self.store.measurements(
             field.id,
-            Some(clock + TimeDelta::milliseconds(1)),
+            Some((clock + TimeDelta::milliseconds(1)).max(now - span)),
             Some(now),
             100_000,
             Sensors::All,
@@ -409,6 +405,7 @@ impl Engine {
             &setpoints,
             &weather_at,
             period,
+            self.max_catch_up_s,
             settle_before,
             &primary,
         );
