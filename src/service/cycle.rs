@@ -851,6 +851,41 @@ mod tests {
         assert_eq!(long.soil(), short.soil());
     }
 
+    #[test]
+    fn a_reading_the_estimate_cannot_explain_resets_it_and_says_so() {
+        let weather = |t| climatology(t, SCENARIO_STEP);
+        let mut est = estimator();
+        // θ 0.21 in the root zone, then within the hour a saturated reading:
+        // an innovation far beyond the filter's bound
+        let readings = [
+            sensor_reading("2026-06-02T01:00:00Z", "root", 0.21),
+            sensor_reading("2026-06-02T02:00:00Z", "root", 0.21),
+            sensor_reading("2026-06-02T02:15:00Z", "root", 0.41),
+        ];
+        let done = assimilate(
+            &mut est,
+            at("2026-06-02T00:59:00Z"),
+            4,
+            &readings,
+            &[],
+            &weather,
+            7200.0,
+            86_400.0,
+            at("2026-06-02T03:00:00Z"),
+            "root",
+        );
+        assert_eq!(done.flags, vec!["estimator-reset".to_string()]);
+        assert_eq!(done.resets, 5, "the earlier resets are passed on");
+        assert_eq!(done.reset_reasons.len(), 1);
+        assert!(
+            done.reset_reasons[0].contains("02:15"),
+            "{:?}",
+            done.reset_reasons
+        );
+        // the estimate is the prior again, finite
+        assert!(est.mean_heads().iter().all(|h| h.is_finite()));
+    }
+
     /// The estimate after the first reading of `all` alone.
     fn late_snapshot(all: &[Measurement]) -> EstimatorSnapshot {
         let mut est = estimator();
