@@ -36,6 +36,27 @@ fn validation(
     .unwrap()
 }
 
+/// The scores on `series` of a two-layer network with `file`'s architecture
+/// and scaling, untrained (weights seeded from `seed`).
+fn untrained_scores(
+    file: &ModelFile,
+    seed: u64,
+    series: &rootzone::surrogate::dataset::Series,
+) -> [f64; 3] {
+    let Surrogate::TwoLayer(net) = &file.model else {
+        panic!("two-layer.json holds a two-layer model")
+    };
+    let fresh = TwoLayerNet {
+        sub_models: [0, 1, 2]
+            .map(|i| SequenceNet::new(&net.sub_models[i].hidden_sizes(), seed + i as u64)),
+        combiner: Mlp::new(net.combiner.hidden(), seed + 3),
+    };
+    nrmse_scores(
+        &mut Predictor::new(Surrogate::TwoLayer(fresh), file.scaling),
+        series,
+    )
+}
+
 #[test]
 fn quick_training_end_to_end_learns_and_the_experiments_run_on_its_models() {
     let dir = tempfile::tempdir().unwrap();
@@ -77,18 +98,7 @@ fn quick_training_end_to_end_learns_and_the_experiments_run_on_its_models() {
         assert!((a - b).abs() < 1e-12, "{a} vs recorded {b}");
     }
     // an untrained network of the same architecture
-    let Surrogate::TwoLayer(net) = &two.model else {
-        panic!("two-layer.json holds a two-layer model")
-    };
-    let fresh = TwoLayerNet {
-        sub_models: [0, 1, 2]
-            .map(|i| SequenceNet::new(&net.sub_models[i].hidden_sizes(), 100 + i as u64)),
-        combiner: Mlp::new(net.combiner.hidden(), 103),
-    };
-    let untrained = nrmse_scores(
-        &mut Predictor::new(Surrogate::TwoLayer(fresh), two.scaling),
-        &series,
-    );
+    let untrained = untrained_scores(&two, 100, &series);
     for (u, t) in untrained.iter().zip(trained) {
         assert!(
             *u > 5.0 * t,
@@ -343,18 +353,7 @@ fn training_for_given_soil_parameters_learns_that_soil() {
     )
     .unwrap();
     let trained = nrmse_scores(&mut two.predictor(), &series);
-    let Surrogate::TwoLayer(net) = &two.model else {
-        panic!("two-layer.json holds a two-layer model")
-    };
-    let fresh = TwoLayerNet {
-        sub_models: [0, 1, 2]
-            .map(|i| SequenceNet::new(&net.sub_models[i].hidden_sizes(), 200 + i as u64)),
-        combiner: Mlp::new(net.combiner.hidden(), 203),
-    };
-    let untrained = nrmse_scores(
-        &mut Predictor::new(Surrogate::TwoLayer(fresh), two.scaling),
-        &series,
-    );
+    let untrained = untrained_scores(&two, 200, &series);
     for (u, t) in untrained.iter().zip(trained) {
         assert!(
             *u > 3.0 * t,
