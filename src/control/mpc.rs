@@ -357,6 +357,11 @@ impl ZoneMpc {
                 best.iterations += sol.iterations;
             }
         }
+        // a solve the budget cut short says so, even when its first run had
+        // converged: the starts it did not try could have beaten that run
+        if self.out_of_time() && !matches!(best.status, SolveStatus::Fallback(_)) {
+            best.status = SolveStatus::TimeBudget;
+        }
         best.solve_time = start.elapsed();
         self.previous = Some(best.plan.clone());
         best
