@@ -130,6 +130,8 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/fields/{id}/estimate", get(get_estimate))
         .route("/v1/fields/{id}/chart.svg", get(get_chart))
         .route("/v1/fields/{id}/profile.svg", get(get_profile_chart))
+        .route("/v1/fields/{id}/water", get(get_water))
+        .route("/v1/fields/{id}/history.csv", get(get_history))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
         .method_not_allowed_fallback(|| async {
             ApiError::new(
@@ -1131,4 +1133,99 @@ mod tests {
             assert_eq!(d, serde_json::from_str::<serde_json::Value>(want).unwrap());
         }
     }
+}
+
+/// The field's water accounts: day, week and season in mm (and m³ with an
+/// area), from its setpoints ([`super::water`]).
+async fn get_water(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<super::water::WaterAccounts>> {
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    let now = state.clock.now();
+    Ok(Json(
+        blocking(move || water_accounts(&engine.store, &field, now)).await?,
+    ))
+}
+
+/// The accounts of `field` at `now` (the season's setpoints, at most one per
+/// minute of the year).
+pub(crate) fn water_accounts(
+    store: &super::store::Store,
+    field: &Field,
+    now: DateTime<Utc>,
+) -> ApiResult<super::water::WaterAccounts> {
+    let [_, _, season] = super::water::windows(now);
+    let setpoints = store
+        .setpoints(field.id, Some(season), Some(now), 600_000)
+        .map_err(ApiError::internal)?;
+    Ok(super::water::accounts(
+        field.id,
+        &setpoints,
+        field.spec.irrigation_system.as_ref(),
+        now,
+    ))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct HistoryQuery {
+    from: Option<String>,
+    to: Option<String>,
+}
+
+/// Measurements, setpoints and forecasts as CSV, streamed page by page
+/// ([`super::history`]). Default range: the last 7 days up to now.
+async fn get_history(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    query: Result<Query<HistoryQuery>, QueryRejection>,
+) -> ApiResult<Response> {
+    let Query(q) = query.map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, e.body_text()))?;
+    let now = state.clock.now();
+    let to = q.to.as_deref().map(|t| parse_time("to", t)).transpose()?;
+    let to = to.unwrap_or(now);
+    let from = q
+        .from
+        .as_deref()
+        .map(|t| parse_time("from", t))
+        .transpose()?;
+    let from = from.unwrap_or(to - TimeDelta::days(7));
+    // a range that ends before it starts holds nothing (as the JSON lists)
+    let field = load_field(&state, &id).await?;
+    let engine = state.engine.clone();
+    let cursor = super::history::Cursor::new(from, to);
+    let pages = futures_util::stream::unfold(Some(cursor), move |cursor| {
+        let engine = engine.clone();
+        async move {
+            let mut cursor = cursor?;
+            let id = field.id;
+            let page = tokio::task::spawn_blocking(move || {
+                let chunk = cursor.next_chunk(&engine.store, id);
+                (cursor, chunk)
+            })
+            .await;
+            match page {
+                Ok((cursor, Ok(Some(chunk)))) => Some((Ok(Bytes::from(chunk)), Some(cursor))),
+                Ok((_, Ok(None))) => None,
+                Ok((_, Err(e))) => {
+                    tracing::error!(error = %e, "history export failed");
+                    Some((Err(std::io::Error::other(e.to_string())), None))
+                }
+                Err(e) => Some((Err(std::io::Error::other(e.to_string())), None)),
+            }
+        }
+    });
+    Ok((
+        [
+            (header::CONTENT_TYPE, "text/csv; charset=utf-8"),
+            (
+                header::CONTENT_DISPOSITION,
+                "attachment; filename=\"history.csv\"",
+            ),
+        ],
+        axum::body::Body::from_stream(pages),
+    )
+        .into_response())
 }

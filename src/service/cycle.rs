@@ -12,11 +12,12 @@ use crate::control::{
     PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc, policy,
 };
 use crate::sim::{SCENARIO_STEP, scenario_series, scenario_weather};
-use crate::soil::{Field as Plant, FieldSettings, VanGenuchten};
+use crate::soil::{Field as Plant, FieldSettings, Forcing, VanGenuchten};
 use crate::surrogate::evaluate::WINDOW;
 use crate::weather::{WeatherStep, mm_to_rate, rate_to_mm};
 
 use super::engine::Models;
+use super::valve;
 use super::wire::{Field, Forecast, Measurement, ModelKind, Scenario, Setpoint};
 use crate::estimate::{EstimateError, Estimator, EstimatorSnapshot};
 
@@ -294,6 +295,13 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         None => solution.predicted.first().copied(),
     }
     .filter(|p| p.is_finite());
+    let valve = spec.irrigation_system.as_ref().map(|system| {
+        let start = valve_start(inputs, current);
+        let w = weather
+            .first()
+            .map_or(Forcing::default(), |w| w.forcing(0.0, period));
+        valve::schedule(system, rate_to_mm(rate, period), period, start.as_ref(), w)
+    });
     Setpoint {
         field_id: field.id,
         time: now,
@@ -313,7 +321,36 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         measured_at,
         bias,
         predicted_next,
+        valve,
     }
+}
+
+/// The column a valve schedule is predicted on: the state estimate, or the
+/// declared soil in equilibrium with the current θ (as the Richards
+/// controller starts without an estimate); None without either.
+fn valve_start(inputs: &CycleInputs, current: Option<f64>) -> Option<valve::ColumnStart> {
+    let spec = &inputs.field.spec;
+    if let Some(e) = &inputs.estimate {
+        return Some(valve::ColumnStart {
+            soil: e.soil,
+            crop: spec.crop(),
+            depth: e.depth,
+            heads: e.heads.clone(),
+        });
+    }
+    let theta = current?;
+    let soil = spec.soil.nominal().ok()?;
+    let defaults = FieldSettings::default();
+    let head = soil.pressure_head_at(theta.clamp(
+        soil.residual_water_content + 1e-6,
+        soil.saturated_water_content - 1e-6,
+    ));
+    Some(valve::ColumnStart {
+        soil,
+        crop: spec.crop(),
+        depth: defaults.depth,
+        heads: vec![head; defaults.cells],
+    })
 }
 
 /// The weather of a field without a plant over the SCENARIO_STEP starting
@@ -718,6 +755,7 @@ mod tests {
             measured_at: None,
             bias: 0.0,
             predicted_next: Some(predicted),
+            valve: None,
         };
         // newest first; a third, older one does not count
         i.recent = vec![

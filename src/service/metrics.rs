@@ -1,8 +1,8 @@
 //! Prometheus metrics of the daemon.
 
 use prometheus::{
-    Encoder, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, Opts, Registry,
-    TextEncoder,
+    CounterVec, Encoder, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, Opts,
+    Registry, TextEncoder,
 };
 
 /// The daemon's metrics and their registry.
@@ -15,6 +15,8 @@ pub struct Metrics {
     pub theta: GaugeVec,
     pub setpoint: GaugeVec,
     pub webhooks: IntCounterVec,
+    pub water_mm: CounterVec,
+    pub water_m3: CounterVec,
 }
 
 impl Metrics {
@@ -71,8 +73,28 @@ impl Metrics {
             &["outcome"],
         )
         .expect("valid metric");
+        // water a field was told to apply, booked when the next setpoint
+        // replaces (or the period ends for) the one that applied it
+        let water_mm = CounterVec::new(
+            Opts::new(
+                "rootzone_field_irrigation_mm_total",
+                "Irrigation applied by finished setpoints of a field [mm]",
+            ),
+            &["field"],
+        )
+        .expect("valid metric");
+        let water_m3 = CounterVec::new(
+            Opts::new(
+                "rootzone_field_irrigation_m3_total",
+                "Irrigation applied by finished setpoints of a field with an area [m3]",
+            ),
+            &["field"],
+        )
+        .expect("valid metric");
         for c in [
-            Box::new(webhooks.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(water_mm.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(water_m3.clone()),
+            Box::new(webhooks.clone()),
             Box::new(measurements.clone()),
             Box::new(cycles.clone()),
             Box::new(degraded.clone()),
@@ -91,6 +113,8 @@ impl Metrics {
             theta,
             setpoint,
             webhooks,
+            water_mm,
+            water_m3,
         }
     }
 

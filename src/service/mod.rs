@@ -7,9 +7,12 @@ pub mod chart;
 pub mod clock;
 pub mod cycle;
 pub mod engine;
+pub mod history;
 pub mod metrics;
 pub mod settings;
 pub mod store;
+pub mod valve;
+pub mod water;
 pub mod webhook;
 pub mod wire;
 
@@ -510,6 +513,22 @@ async fn run_cycle_in(
     m.setpoint
         .with_label_values(&[label.as_str()])
         .set(setpoint.amount_mm);
+    // the setpoint this one replaces has applied all it will
+    if let Ok(latest) = state.engine.store.recent_setpoints(field.id, 2)
+        && let [_, previous] = latest.as_slice()
+    {
+        let mm = water::applied_mm(
+            std::slice::from_ref(previous),
+            previous.valid_from,
+            setpoint.valid_from.max(previous.valid_from),
+        );
+        m.water_mm.with_label_values(&[label.as_str()]).inc_by(mm);
+        if let Some(system) = &field.spec.irrigation_system {
+            m.water_m3
+                .with_label_values(&[label.as_str()])
+                .inc_by(system.cubic_metres(mm));
+        }
+    }
     if let Ok(Some(latest)) = state.engine.store.measurement_before(field.id, at) {
         m.theta
             .with_label_values(&[label.as_str()])

@@ -127,6 +127,10 @@ pub struct FieldSpec {
     /// The simulated plant (only with `actuator.kind = "simulated"`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simulation: Option<SimulationSpec>,
+    /// Area and emitter rate: setpoints then also carry valve minutes,
+    /// litres and a cycle-and-soak split ([`super::valve`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub irrigation_system: Option<super::valve::IrrigationSystem>,
 }
 
 fn default_irrigation_max() -> f64 {
@@ -673,6 +677,7 @@ impl FieldSpec {
             actuator: Actuator::Simulated,
             sensors: Vec::new(),
             simulation: Some(SimulationSpec::default()),
+            irrigation_system: None,
         }
     }
 
@@ -730,6 +735,9 @@ impl FieldSpec {
             {
                 return Err("actuator.secret must have 16 to 200 characters".into());
             }
+        }
+        if let Some(system) = &self.irrigation_system {
+            system.validate()?;
         }
         if self.sensors.len() > MAX_SENSORS {
             return Err(format!(
@@ -971,6 +979,9 @@ pub struct Setpoint {
     /// fit); absent when the cycle made none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub predicted_next: Option<f64>,
+    /// Valve time, volume and pulses (fields with an `irrigation_system`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub valve: Option<super::valve::ValveSchedule>,
 }
 
 #[cfg(test)]
