@@ -1,7 +1,8 @@
 //! The dashboard in a real headless browser (Debian's chromium; `.ci/run`
 //! installs it): the page loads without console errors, lists every field,
-//! and its chart has data. A screenshot is written to
-//! `target/test-artefacts/dashboard.png`.
+//! and its chart has data, at a wide screen's and a phone's width.
+//! Screenshots are written to `target/test-artefacts/dashboard.png` and
+//! `dashboard-phone.png`.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -114,56 +115,79 @@ seed = 4
     assert!(svg.matches("<polyline").count() >= 2, "no profile lines");
 
     let profile = dir.path().join("chromium-profile");
-    let run = |extra: &[&str]| {
+    let run = |size: &str, extra: &[&str]| {
         Command::new(&browser)
             .args([
                 "--headless",
                 "--no-sandbox",
                 "--disable-gpu",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--no-first-run",
                 "--enable-logging=stderr",
                 "--v=0",
                 "--virtual-time-budget=5000",
-                "--window-size=1200,1400",
             ])
+            .arg(format!("--window-size={size}"))
             .arg(format!("--user-data-dir={}", profile.display()))
             .args(extra)
             .arg(format!("{base}/"))
             .output()
             .unwrap()
     };
-    let dom = run(&["--dump-dom"]);
-    let html = String::from_utf8_lossy(&dom.stdout);
-    let log = String::from_utf8_lossy(&dom.stderr);
-    for l in log.lines() {
-        assert!(
-            !(l.contains("CONSOLE") || l.contains("Uncaught")),
-            "console message: {l}"
-        );
-    }
-    assert!(html.contains("data-fields=\"2\""), "{html}");
-    for name in ["east plot (#1)", "west plot (#2)"] {
-        assert!(html.contains(name), "{name} missing: {html}");
-    }
-    // the zone in both forms, and when the next cycle is due
-    assert!(html.contains("0.180–0.230 (h -0.43…-0.27 m)"), "{html}");
-    assert_eq!(html.matches("class=\"due\"").count(), 2, "{html}");
-    assert!(html.contains(" UTC (in "), "{html}");
-    assert_eq!(
-        html.matches("data-loaded=\"yes\"").count(),
-        4,
-        "charts not loaded: {html}"
-    );
-    // the screenshot, kept as a test artefact
     let out_dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-artefacts");
     std::fs::create_dir_all(&out_dir).unwrap();
-    let shot = out_dir.join("dashboard.png");
-    let _ = std::fs::remove_file(&shot);
-    let r = run(&[&format!("--screenshot={}", shot.display())]);
-    assert!(r.status.success());
-    let png = std::fs::read(&shot).unwrap();
-    assert!(
-        png.starts_with(b"\x89PNG") && png.len() > 10_000,
-        "{} bytes",
-        png.len()
-    );
+    // a wide screen and a phone
+    for (size, name) in [
+        ("1200,1400", "dashboard.png"),
+        ("360,1400", "dashboard-phone.png"),
+    ] {
+        let dom = run(size, &["--dump-dom"]);
+        let html = String::from_utf8_lossy(&dom.stdout);
+        let log = String::from_utf8_lossy(&dom.stderr);
+        for l in log.lines() {
+            assert!(
+                !(l.contains("CONSOLE") || l.contains("Uncaught")),
+                "console message: {l}"
+            );
+        }
+        assert!(html.contains("data-fields=\"2\""), "{html}");
+        for name in ["east plot (#1)", "west plot (#2)"] {
+            assert!(html.contains(name), "{name} missing: {html}");
+        }
+        // units, the zone in both forms, when the last reading came and
+        // the next cycle is due (in the browser's zone: UTC here)
+        for unit in [
+            "θ [m³/m³]",
+            "[mm / period]",
+            "water today / week / season [mm]",
+        ] {
+            assert!(html.contains(unit), "{unit} missing: {html}");
+        }
+        assert!(html.contains("0.180–0.230 (h -0.43…-0.27 m)"), "{html}");
+        assert_eq!(html.matches("class=\"due\"").count(), 2, "{html}");
+        assert_eq!(html.matches("class=\"last\"").count(), 2, "{html}");
+        assert_eq!(html.matches("class=\"water\"").count(), 2, "{html}");
+        assert!(html.contains(" UTC (in "), "{html}");
+        // every decision explained in words
+        assert_eq!(html.matches("class=\"why\">Irrigate ").count(), 2, "{html}");
+        assert!(html.contains("optimiser: "), "{html}");
+        assert_eq!(
+            html.matches("data-loaded=\"yes\"").count(),
+            4,
+            "charts not loaded: {html}"
+        );
+        // the screenshot, kept as a test artefact
+        let shot = out_dir.join(name);
+        let _ = std::fs::remove_file(&shot);
+        let r = run(size, &[&format!("--screenshot={}", shot.display())]);
+        assert!(r.status.success());
+        let png = std::fs::read(&shot).unwrap();
+        assert!(
+            png.starts_with(b"\x89PNG") && png.len() > 10_000,
+            "{} bytes",
+            png.len()
+        );
+    }
 }
