@@ -679,6 +679,13 @@ impl FieldSpec {
     /// What is wrong with the field, if anything (the message names the key
     /// and its range).
     pub fn validate(&self) -> Result<(), String> {
+        self.validate_for(false)
+    }
+
+    /// [`validate`](Self::validate) for a field that has (`own_surrogate`)
+    /// a validated surrogate of its own: then a surrogate model is allowed
+    /// on any soil.
+    pub fn validate_for(&self, own_surrogate: bool) -> Result<(), String> {
         let chars = self.name.chars().count();
         if self.name.trim().is_empty() || chars > MAX_NAME_CHARS {
             return Err(format!(
@@ -689,7 +696,7 @@ impl FieldSpec {
             return Err("name must not contain control characters".into());
         }
         let soil = self.soil.nominal()?;
-        if self.model != ModelKind::Richards && !self.soil.is_sandy_loam() {
+        if self.model != ModelKind::Richards && !self.soil.is_sandy_loam() && !own_surrogate {
             return Err(format!(
                 "model '{}' is trained for sandy-loam only; use model 'richards' for another soil",
                 self.model.name()
@@ -971,6 +978,10 @@ pub struct Setpoint {
     /// fit); absent when the cycle made none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub predicted_next: Option<f64>,
+    /// The field's own surrogate the cycle used (its model id), when it
+    /// used one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub surrogate: Option<String>,
 }
 
 #[cfg(test)]
