@@ -683,8 +683,8 @@ impl FieldSpec {
     }
 
     /// [`validate`](Self::validate) for a field that has (`own_surrogate`)
-    /// a validated surrogate of its own: then a surrogate model is allowed
-    /// on any soil.
+    /// a validated two-layer surrogate of its own: then model two-layer is
+    /// allowed on any soil.
     pub fn validate_for(&self, own_surrogate: bool) -> Result<(), String> {
         let chars = self.name.chars().count();
         if self.name.trim().is_empty() || chars > MAX_NAME_CHARS {
@@ -696,7 +696,10 @@ impl FieldSpec {
             return Err("name must not contain control characters".into());
         }
         let soil = self.soil.nominal()?;
-        if self.model != ModelKind::Richards && !self.soil.is_sandy_loam() && !own_surrogate {
+        if self.model != ModelKind::Richards
+            && !self.soil.is_sandy_loam()
+            && !(own_surrogate && self.model == ModelKind::TwoLayer)
+        {
             return Err(format!(
                 "model '{}' is trained for sandy-loam only; use model 'richards' for another soil",
                 self.model.name()
