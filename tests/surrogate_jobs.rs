@@ -252,4 +252,9 @@ fn a_field_trains_uses_rolls_back_and_refuses_its_own_surrogate() {
     let s = json_of(&curl(&d, "GET", &format!("{fp}/surrogate"), None, None).2);
     assert_eq!(s["current"]["id"], first.as_str(), "{s}");
     assert_eq!(s["previous"]["id"], third.as_str(), "{s}");
+
+    // a deleted field's models go with it
+    let r = curl(&d, "DELETE", &fp, None, Some(TOKEN));
+    assert_eq!(r.0, 204, "{}", r.2);
+    assert!(!model_dir.exists());
 }

@@ -517,6 +517,8 @@ async fn delete_field(
             .map_err(ApiError::internal)
     })
     .await?;
+    state.training.forget_field(field.id);
+    state.engine.own_models.forget(field.id);
     Ok(StatusCode::NO_CONTENT)
 }
 

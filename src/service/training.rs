@@ -376,6 +376,18 @@ impl OwnModels {
         matches!(self.current(field), Some((_, Ok(_))))
     }
 
+    /// Removes a deleted field's models (its id is never reused).
+    pub fn forget(&self, field: i64) {
+        if let Some(dir) = self.field_dir(field) {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+        let prefix = format!("{field}/");
+        self.cache
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .retain(|k, _| !k.starts_with(&prefix));
+    }
+
     /// Stores a validated model and makes it current (the current one
     /// becomes the previous).
     pub fn install(&self, meta: &SurrogateMeta, file: &ModelFile) -> Result<(), String> {
@@ -595,6 +607,13 @@ impl Jobs {
         }
         job.cancel.store(true, Ordering::Relaxed);
         Some(job.view())
+    }
+
+    /// Asks the jobs of a deleted field to stop.
+    pub fn forget_field(&self, field: i64) {
+        for v in self.of_field(field) {
+            self.cancel(field, &v.id);
+        }
     }
 
     /// Asks every job to stop (shutdown).
