@@ -90,7 +90,7 @@ impl IntoResponse for ApiError {
     }
 }
 
-type ApiResult<T> = Result<T, ApiError>;
+pub(crate) type ApiResult<T> = Result<T, ApiError>;
 
 /// A storage failure: a conflict is the client's (409), the rest the daemon's.
 fn store_error(e: super::store::StoreError) -> ApiError {
@@ -132,6 +132,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/fields/{id}/profile.svg", get(get_profile_chart))
         .route("/v1/fields/{id}/water", get(get_water))
         .route("/v1/fields/{id}/history.csv", get(get_history))
+        .merge(super::training::routes())
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such endpoint") })
         .method_not_allowed_fallback(|| async {
             ApiError::new(
@@ -226,7 +227,7 @@ pub(crate) fn same_secret(a: &str, b: &str) -> bool {
 /// Checks the bearer token of a mutating request: no credentials, or
 /// credentials of another scheme, are 401 (with a `WWW-Authenticate`
 /// challenge); a bearer token that is not the daemon's is 403.
-fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
+pub(crate) fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     if bearer(headers).is_none() {
         return Err(ApiError::new(
             StatusCode::UNAUTHORIZED,
@@ -244,7 +245,7 @@ fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
 }
 
 /// The body's bytes (within the size limit).
-fn raw_body(body: Result<Bytes, BytesRejection>) -> ApiResult<Bytes> {
+pub(crate) fn raw_body(body: Result<Bytes, BytesRejection>) -> ApiResult<Bytes> {
     body.map_err(|r| {
         let status = r.status();
         if status == StatusCode::PAYLOAD_TOO_LARGE {
@@ -300,7 +301,7 @@ async fn blocking<T: Send + 'static>(
         .map_err(ApiError::internal)?
 }
 
-async fn load_field(state: &Arc<AppState>, raw: &str) -> ApiResult<Field> {
+pub(crate) async fn load_field(state: &Arc<AppState>, raw: &str) -> ApiResult<Field> {
     let id = field_id(raw)?;
     let engine = state.engine.clone();
     blocking(move || {
@@ -428,7 +429,9 @@ async fn patch_field(
     let spec: FieldSpec = field_spec(&text)
         .map_err(|e| ApiError::bad(format!("invalid field after the patch: {}", e.detail)))?;
     let mut spec = spec;
-    spec.validate().map_err(ApiError::bad)?;
+    // a field with its own validated surrogate may switch to it
+    let own = state.engine.own_models.has_current(field.id);
+    spec.validate_for(own).map_err(ApiError::bad)?;
     check_target(&state, &spec)?;
     let generated = super::give_secret(&mut spec).map_err(ApiError::internal)?;
     let engine = state.engine.clone();
@@ -516,6 +519,8 @@ async fn delete_field(
             .map_err(ApiError::internal)
     })
     .await?;
+    state.training.forget_field(field.id);
+    state.engine.own_models.forget(field.id);
     Ok(StatusCode::NO_CONTENT)
 }
 

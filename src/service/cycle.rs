@@ -322,6 +322,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         bias,
         predicted_next,
         valve,
+        surrogate: None,
     }
 }
 
@@ -756,6 +757,7 @@ mod tests {
             bias: 0.0,
             predicted_next: Some(predicted),
             valve: None,
+            surrogate: None,
         };
         // newest first; a third, older one does not count
         i.recent = vec![

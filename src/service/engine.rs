@@ -62,6 +62,8 @@ pub struct Engine {
     /// How late [s of clock time] a reading may arrive and still be
     /// assimilated.
     late_window_s: f64,
+    /// The fields' own surrogates (`service::training`).
+    pub own_models: super::training::OwnModels,
 }
 
 /// A failure of the work (not of the input).
@@ -82,7 +84,14 @@ impl Engine {
             cancel: Arc::default(),
             max_catch_up_s: super::settings::default_catch_up(),
             late_window_s: super::settings::default_late_window(),
+            own_models: super::training::OwnModels::disabled(),
         }
+    }
+
+    /// Where the fields' own surrogates are stored.
+    pub fn own_models(mut self, own: super::training::OwnModels) -> Engine {
+        self.own_models = own;
+        self
     }
 
     /// How late [s of clock time] a reading may arrive and still enter the
@@ -476,7 +485,29 @@ impl Engine {
         flags.extend(estimate_flags);
         inputs.estimate = estimate;
         inputs.degraded = flags;
-        let setpoint = decide(&inputs, &self.models, &self.cancel);
+        // a two-layer field with its own surrogate plans on it; one that
+        // does not match its metadata is refused (logged) and flagged
+        let own = match field.spec.model {
+            super::wire::ModelKind::TwoLayer => self.own_models.current(field.id),
+            _ => None,
+        };
+        let mut own_id = None;
+        let mut setpoint = match own {
+            Some((id, Ok(file))) => {
+                own_id = Some(id);
+                let models = Models {
+                    two_layer: (*file).clone(),
+                    lstm: self.models.lstm.clone(),
+                };
+                decide(&inputs, &models, &self.cancel)
+            }
+            Some((_, Err(_))) => {
+                inputs.degraded.push("surrogate-refused".into());
+                decide(&inputs, &self.models, &self.cancel)
+            }
+            None => decide(&inputs, &self.models, &self.cancel),
+        };
+        setpoint.surrogate = own_id;
         self.store.add_setpoint(&setpoint)?;
         Ok(setpoint)
     }

@@ -11,6 +11,7 @@ pub mod history;
 pub mod metrics;
 pub mod settings;
 pub mod store;
+pub mod training;
 pub mod valve;
 pub mod water;
 pub mod webhook;
@@ -63,6 +64,8 @@ pub struct AppState {
     pub metrics: Metrics,
     pub token: String,
     pub settings: Settings,
+    /// The per-field surrogate training jobs.
+    pub training: Arc<training::Jobs>,
     /// Bounds the control cycles and simulations running at once.
     permits: Arc<Semaphore>,
     /// Per field, woken when its measurements are stored (a cycle waiting
@@ -232,12 +235,25 @@ impl App {
                 can reach it, and a client needs the token only to change things; \
                 put it behind a firewall or a TLS proxy");
         }
+        let base_name = match &settings.models_dir {
+            Some(dir) => dir.join(TWO_LAYER_FILE).display().to_string(),
+            None => "(built-in) models/two-layer.json".to_string(),
+        };
+        let training = Arc::new(training::Jobs::new(
+            settings.training,
+            settings.limits.training_jobs,
+            training::Base::of(&models.two_layer, &base_name),
+            &settings.data_dir,
+        ));
+        let own_models = training::OwnModels::at(settings.data_dir.join("surrogates"));
         let state = Arc::new(AppState {
             engine: Arc::new(
                 Engine::new(store, models)
                     .catch_up_limit(settings.limits.max_catch_up_s)
-                    .late_window(settings.limits.late_window_s),
+                    .late_window(settings.limits.late_window_s)
+                    .own_models(own_models),
             ),
+            training,
             clock,
             metrics: Metrics::new(),
             token,
@@ -276,6 +292,7 @@ impl App {
         });
         let result = server.await;
         state.shutdown.cancel();
+        state.training.cancel_all();
         // a solve under way stops as at its time budget and stores its
         // fallback; whatever still runs after the grace period is left
         state

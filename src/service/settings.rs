@@ -27,6 +27,13 @@ pub const ENV_KEYS: &[&str] = &[
     "limits.worker_threads",
     "limits.max_catch_up_s",
     "limits.late_window_s",
+    "limits.training_jobs",
+    "training.nrmse_gate",
+    "training.max_epochs",
+    "training.impulse_samples",
+    "training.sub_model_samples",
+    "training.validation_samples",
+    "training.threads",
     "log.format",
     "log.level",
     "webhooks.allow_link_local",
@@ -57,6 +64,9 @@ pub struct Settings {
     pub log: LogSettings,
     #[serde(default)]
     pub webhooks: WebhookSettings,
+    /// Per-field surrogate training jobs (`service::training`).
+    #[serde(default)]
+    pub training: super::training::TrainingSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
 }
@@ -101,6 +111,10 @@ pub struct Limits {
     /// readings that arrive late or out of order within it count.
     #[serde(default = "default_late_window", deserialize_with = "lenient_f64")]
     pub late_window_s: f64,
+    /// Surrogate training jobs running at once, 1 … 8 (default 1; more
+    /// wait, queued).
+    #[serde(default = "super::training::default_training_jobs")]
+    pub training_jobs: usize,
 }
 
 /// The default late-reading window: 1 hour.
@@ -191,9 +205,11 @@ impl Default for Settings {
                 worker_threads: 2,
                 max_catch_up_s: default_catch_up(),
                 late_window_s: default_late_window(),
+                training_jobs: super::training::default_training_jobs(),
             },
             log: LogSettings::default(),
             webhooks: WebhookSettings::default(),
+            training: Default::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -253,6 +269,13 @@ impl Settings {
         .map_err(SettingsError)?;
         check_range("limits.late_window_s", l.late_window_s, (0.0, 86_400.0))
             .map_err(SettingsError)?;
+        if !(1..=8).contains(&l.training_jobs) {
+            return bad(format!(
+                "limits.training_jobs = {} must lie in [1, 8]",
+                l.training_jobs
+            ));
+        }
+        self.training.validate().map_err(SettingsError)?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",

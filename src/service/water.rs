@@ -119,6 +119,7 @@ mod tests {
             bias: 0.0,
             predicted_next: None,
             valve: None,
+            surrogate: None,
         }
     }
 

@@ -684,6 +684,13 @@ impl FieldSpec {
     /// What is wrong with the field, if anything (the message names the key
     /// and its range).
     pub fn validate(&self) -> Result<(), String> {
+        self.validate_for(false)
+    }
+
+    /// [`validate`](Self::validate) for a field that has (`own_surrogate`)
+    /// a validated two-layer surrogate of its own: then model two-layer is
+    /// allowed on any soil.
+    pub fn validate_for(&self, own_surrogate: bool) -> Result<(), String> {
         let chars = self.name.chars().count();
         if self.name.trim().is_empty() || chars > MAX_NAME_CHARS {
             return Err(format!(
@@ -694,7 +701,10 @@ impl FieldSpec {
             return Err("name must not contain control characters".into());
         }
         let soil = self.soil.nominal()?;
-        if self.model != ModelKind::Richards && !self.soil.is_sandy_loam() {
+        if self.model != ModelKind::Richards
+            && !self.soil.is_sandy_loam()
+            && !(own_surrogate && self.model == ModelKind::TwoLayer)
+        {
             return Err(format!(
                 "model '{}' is trained for sandy-loam only; use model 'richards' for another soil",
                 self.model.name()
@@ -982,6 +992,10 @@ pub struct Setpoint {
     /// Valve time, volume and pulses (fields with an `irrigation_system`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub valve: Option<super::valve::ValveSchedule>,
+    /// The field's own surrogate the cycle used (its model id), when it
+    /// used one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub surrogate: Option<String>,
 }
 
 #[cfg(test)]

@@ -14,6 +14,8 @@
 //!   Jacobian with respect to the future irrigation rates;
 //! * [`correction`]: bias and bounded linear plant-model mismatch correction;
 //! * [`file`]: the versioned JSON model file;
+//! * [`finetune`]: a warm start, the shipped two-layer network refined for
+//!   another soil (the daemon's per-field jobs);
 //! * [`dataset`], [`evaluate`]: training data from the simulator and
 //!   open-loop scoring.
 //!
@@ -25,6 +27,7 @@ pub mod dataset;
 pub(crate) mod dense;
 pub mod evaluate;
 pub mod file;
+pub mod finetune;
 pub(crate) mod lstm;
 pub mod network;
 pub mod pipeline;

@@ -542,6 +542,9 @@ pub enum TrainError {
     NoValidationSamples,
     #[error("invalid training configuration: {0}")]
     InvalidConfig(&'static str),
+    /// The caller's stop check ([`train_until`]) said so.
+    #[error("training cancelled")]
+    Cancelled,
 }
 
 struct Shard<W> {
@@ -588,7 +591,21 @@ pub fn train<M: Trainable>(
     training: Split<'_, M::Data>,
     validation: Split<'_, M::Data>,
     config: &TrainConfig,
+    on_epoch: impl FnMut(&EpochReport),
+) -> Result<TrainReport, TrainError> {
+    train_until(model, training, validation, config, on_epoch, &|| false)
+}
+
+/// [`train`] with a stop check, asked before every mini-batch: when it
+/// says stop, the model is left as it was before training and the answer
+/// is [`TrainError::Cancelled`].
+pub fn train_until<M: Trainable>(
+    model: &mut M,
+    training: Split<'_, M::Data>,
+    validation: Split<'_, M::Data>,
+    config: &TrainConfig,
     mut on_epoch: impl FnMut(&EpochReport),
+    stop: &dyn Fn() -> bool,
 ) -> Result<TrainReport, TrainError> {
     if training.samples.is_empty() {
         return Err(TrainError::NoTrainingSamples);
@@ -634,6 +651,7 @@ pub fn train<M: Trainable>(
         return Ok(report);
     }
     let mut best = model.parameters().to_vec();
+    let initial_params = best.clone();
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let mut order = training.samples.to_vec();
     let (mut m, mut v) = (vec![0.0; n], vec![0.0; n]);
@@ -648,6 +666,12 @@ pub fn train<M: Trainable>(
         let mut loss_sum = 0.0;
         let mut batches = 0usize;
         for batch in order.chunks(config.batch_size) {
+            if stop() {
+                let start = initial_params.as_slice();
+                model.parameters_mut().copy_from_slice(start);
+                model.parameters_changed();
+                return Err(TrainError::Cancelled);
+            }
             let scale = 1.0 / batch.len() as f64;
             let loss = squared_error_sum(&*model, training.data, batch, &mut shards, Some(scale));
             loss_sum += loss * scale;
