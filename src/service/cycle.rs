@@ -313,6 +313,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         measured_at,
         bias,
         predicted_next,
+        forecast: None,
     }
 }
 
@@ -718,6 +719,7 @@ mod tests {
             measured_at: None,
             bias: 0.0,
             predicted_next: Some(predicted),
+            forecast: None,
         };
         // newest first; a third, older one does not count
         i.recent = vec![

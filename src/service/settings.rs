@@ -30,6 +30,13 @@ pub const ENV_KEYS: &[&str] = &[
     "log.format",
     "log.level",
     "webhooks.allow_link_local",
+    "forecasts.poll_interval_s",
+    "forecasts.retry_s",
+    "forecasts.max_backoff_s",
+    "forecasts.stale_after_s",
+    "forecasts.timeout_s",
+    "forecasts.contact",
+    "forecasts.location_decimals",
 ];
 
 /// The environment variable of a settings key.
@@ -57,6 +64,9 @@ pub struct Settings {
     pub log: LogSettings,
     #[serde(default)]
     pub webhooks: WebhookSettings,
+    /// Polled forecast providers (`ROOTZONE_FORECASTS__…`).
+    #[serde(default)]
+    pub forecasts: crate::adapters::forecast::ForecastSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
 }
@@ -194,6 +204,7 @@ impl Default for Settings {
             },
             log: LogSettings::default(),
             webhooks: WebhookSettings::default(),
+            forecasts: Default::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -253,6 +264,7 @@ impl Settings {
         .map_err(SettingsError)?;
         check_range("limits.late_window_s", l.late_window_s, (0.0, 86_400.0))
             .map_err(SettingsError)?;
+        self.forecasts.validate().map_err(SettingsError)?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",
