@@ -8,6 +8,7 @@
 //! way: measurements and forecasts in at the edge, physics and surrogates
 //! predict, the controller decides, the edge publishes.
 
+pub mod adapters;
 pub mod control;
 pub mod estimate;
 pub mod experiment;

@@ -494,7 +494,14 @@ fn objects_only(value: &serde_json::Value, what: &str, keys: &[&str]) -> ApiResu
 }
 
 /// The keys of a field spec that hold objects.
-const FIELD_OBJECTS: &[&str] = &["soil", "crop", "zone", "actuator", "simulation"];
+const FIELD_OBJECTS: &[&str] = &[
+    "soil",
+    "crop",
+    "zone",
+    "actuator",
+    "simulation",
+    "forecast_source",
+];
 
 /// A field spec from JSON, objects checked.
 fn field_spec(bytes: &[u8]) -> ApiResult<FieldSpec> {
@@ -811,7 +818,15 @@ async fn get_forecast(
             .latest_forecast(field.id)
             .map_err(ApiError::internal)?
         {
-            Some(f) => (f, "posted"),
+            // a polled source's latest forecast is named after it
+            Some(f) => (
+                f,
+                field
+                    .spec
+                    .forecast_source
+                    .as_ref()
+                    .map_or("posted", |s| s.provider.name()),
+            ),
             None => (engine.climatology_forecast(&field, now), "climatology"),
         };
         let mut doc = serde_json::to_value(forecast).map_err(ApiError::internal)?;

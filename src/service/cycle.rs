@@ -323,6 +323,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         predicted_next,
         valve,
         surrogate: None,
+        forecast: None,
     }
 }
 
@@ -758,6 +759,7 @@ mod tests {
             predicted_next: Some(predicted),
             valve: None,
             surrogate: None,
+            forecast: None,
         };
         // newest first; a third, older one does not count
         i.recent = vec![

@@ -64,6 +64,8 @@ pub struct Engine {
     late_window_s: f64,
     /// The fields' own surrogates (`service::training`).
     pub own_models: super::training::OwnModels,
+    /// The polled forecast sources' staleness and rounding.
+    forecasts: crate::adapters::forecast::ForecastSettings,
 }
 
 /// A failure of the work (not of the input).
@@ -85,6 +87,7 @@ impl Engine {
             max_catch_up_s: super::settings::default_catch_up(),
             late_window_s: super::settings::default_late_window(),
             own_models: super::training::OwnModels::disabled(),
+            forecasts: Default::default(),
         }
     }
 
@@ -92,6 +95,59 @@ impl Engine {
     pub fn own_models(mut self, own: super::training::OwnModels) -> Engine {
         self.own_models = own;
         self
+    }
+
+    /// The settings of the polled forecast sources.
+    pub fn forecast_settings(
+        mut self,
+        settings: crate::adapters::forecast::ForecastSettings,
+    ) -> Engine {
+        self.forecasts = settings;
+        self
+    }
+
+    /// The forecast a cycle of `field` at `now` uses, a flag when it falls
+    /// back, and the record of it: a field with a `forecast_source` uses
+    /// that source's last good forecast while it is fresh, else (stale, or
+    /// never fetched) the climatology, flagged `stale-forecast`; a field
+    /// without one the latest stored forecast.
+    pub fn cycle_forecast(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        stored: Option<Forecast>,
+    ) -> Result<(Option<Forecast>, Option<String>, super::wire::ForecastUsed), EngineError> {
+        use crate::adapters::forecast::{SourceState, for_cycle};
+        let period = field.spec.control_period_s;
+        if let Some(src) = &field.spec.forecast_source {
+            let key = src.key(self.forecasts.location_decimals).id();
+            let state: Option<SourceState> = self
+                .store
+                .forecast_source(&key)?
+                .and_then(|b| serde_json::from_str(&b).ok());
+            let (f, flag, used) = for_cycle(
+                src.provider,
+                state.as_ref(),
+                period,
+                now,
+                self.forecasts.stale_after_s,
+            );
+            return Ok((f, flag.map(str::to_string), used));
+        }
+        let fresh = stored
+            .as_ref()
+            .filter(|f| (now - f.issued_at).num_milliseconds() as f64 <= 2e3 * period);
+        let used = super::wire::ForecastUsed {
+            source: match (fresh, &field.spec.actuator) {
+                (None, _) => "climatology",
+                (Some(_), Actuator::Simulated) => "simulated",
+                (Some(_), _) => "posted",
+            }
+            .into(),
+            issued_at: fresh.map(|f| f.issued_at),
+            fetched_at: None,
+        };
+        Ok((stored, None, used))
     }
 
     /// How late [s of clock time] a reading may arrive and still enter the
@@ -481,6 +537,10 @@ impl Engine {
             self.simulated_forecast(field, now, n)?;
         }
         let mut inputs = self.load(field, now)?;
+        let (forecast, forecast_flag, used) =
+            self.cycle_forecast(field, now, inputs.forecast.take())?;
+        inputs.forecast = forecast;
+        flags.extend(forecast_flag);
         let (estimate, estimate_flags) = self.estimate(field, now)?;
         flags.extend(estimate_flags);
         inputs.estimate = estimate;
@@ -508,6 +568,7 @@ impl Engine {
             None => decide(&inputs, &self.models, &self.cancel),
         };
         setpoint.surrogate = own_id;
+        setpoint.forecast = Some(used);
         self.store.add_setpoint(&setpoint)?;
         Ok(setpoint)
     }

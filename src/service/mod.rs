@@ -249,6 +249,7 @@ impl App {
         let state = Arc::new(AppState {
             engine: Arc::new(
                 Engine::new(store, models)
+                    .forecast_settings(settings.forecasts.clone())
                     .catch_up_limit(settings.limits.max_catch_up_s)
                     .late_window(settings.limits.late_window_s)
                     .own_models(own_models),
@@ -282,6 +283,8 @@ impl App {
         for field in state.engine.store.fields()? {
             spawn_field(&state, &field, true);
         }
+        let s = state.clone();
+        state.tracker.spawn(async move { forecast_loop(s).await });
         let router = api::router(state.clone());
         let cancel = state.shutdown.clone();
         let server = axum::serve(self.listener, router).with_graceful_shutdown(async move {
@@ -436,6 +439,61 @@ async fn measurement_at(state: &AppState, id: i64, at: DateTime<Utc>, until: Dat
         tokio::select! {
             _ = stored => {}
             _ = state.clock.sleep_until(until) => return,
+        }
+    }
+}
+
+/// Polls the fields' forecast sources (`crate::adapters::forecast`): every
+/// `forecasts.retry_s` of clock time the sources that are due (their poll
+/// interval or backoff over) are requested, once per distinct source.
+async fn forecast_loop(state: Arc<AppState>) {
+    let settings = state.settings.forecasts.clone();
+    let tick = settings.retry_s.min(settings.poll_interval_s);
+    let poller = match crate::adapters::forecast::Poller::new(settings, state.engine.store.clone())
+    {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::error!(error = %e, "no forecast poller");
+            return;
+        }
+    };
+    let mut warned = false;
+    loop {
+        let engine = state.engine.clone();
+        let fields = tokio::task::spawn_blocking(move || engine.store.fields())
+            .await
+            .ok()
+            .and_then(Result::ok)
+            .unwrap_or_default();
+        let polled: Vec<Field> = fields
+            .into_iter()
+            .filter(|f| f.spec.forecast_source.is_some())
+            .collect();
+        if !polled.is_empty() {
+            if !warned && poller.settings().contact.trim().is_empty() {
+                tracing::warn!(
+                    "forecasts.contact is not set: providers ask for a contact in the                     User-Agent (MET Norway may block requests without one)"
+                );
+                warned = true;
+            }
+            match poller.poll(state.clock.now(), &polled).await {
+                Ok(r) if r.requests > 0 => tracing::info!(
+                    sources = r.sources,
+                    requests = r.requests,
+                    updated = r.updated,
+                    not_modified = r.not_modified,
+                    failed = r.failed,
+                    fields = r.fields_updated,
+                    "forecast poll"
+                ),
+                Ok(_) => {}
+                Err(e) => tracing::warn!(error = %e, "forecast poll"),
+            }
+        }
+        let next = clock::add_seconds(state.clock.now(), tick);
+        tokio::select! {
+            _ = state.clock.sleep_until(next) => {}
+            _ = state.shutdown.cancelled() => return,
         }
     }
 }

@@ -37,6 +37,13 @@ pub const ENV_KEYS: &[&str] = &[
     "log.format",
     "log.level",
     "webhooks.allow_link_local",
+    "forecasts.poll_interval_s",
+    "forecasts.retry_s",
+    "forecasts.max_backoff_s",
+    "forecasts.stale_after_s",
+    "forecasts.timeout_s",
+    "forecasts.contact",
+    "forecasts.location_decimals",
 ];
 
 /// The environment variable of a settings key.
@@ -67,6 +74,9 @@ pub struct Settings {
     /// Per-field surrogate training jobs (`service::training`).
     #[serde(default)]
     pub training: super::training::TrainingSettings,
+    /// Polled forecast providers (`ROOTZONE_FORECASTS__…`).
+    #[serde(default)]
+    pub forecasts: crate::adapters::forecast::ForecastSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
 }
@@ -210,6 +220,7 @@ impl Default for Settings {
             log: LogSettings::default(),
             webhooks: WebhookSettings::default(),
             training: Default::default(),
+            forecasts: Default::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -276,6 +287,7 @@ impl Settings {
             ));
         }
         self.training.validate().map_err(SettingsError)?;
+        self.forecasts.validate().map_err(SettingsError)?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",

@@ -58,6 +58,9 @@ const MIGRATIONS: &[&str] = &[
     "CREATE TABLE estimates (
          field_id INTEGER PRIMARY KEY REFERENCES fields(id) ON DELETE CASCADE,
          body TEXT NOT NULL);",
+    // a polled forecast source's state (its last good forecast, validators,
+    // backoff), shared by the fields at its location
+    "CREATE TABLE forecast_sources (key TEXT PRIMARY KEY, body TEXT NOT NULL);",
 ];
 
 /// A storage operation failed.
@@ -554,6 +557,29 @@ impl Store {
                 "INSERT INTO estimates(field_id, body) VALUES (?1, ?2)
                  ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
                 params![field, body],
+            )?;
+            Ok(())
+        })
+    }
+
+    /// A polled forecast source's state (JSON), by its key.
+    pub fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT body FROM forecast_sources WHERE key = ?1",
+                [key],
+                |r| r.get(0),
+            )
+            .optional()?)
+        })
+    }
+
+    pub fn put_forecast_source(&self, key: &str, body: &str) -> Result<(), StoreError> {
+        self.with(|c| {
+            c.execute(
+                "INSERT INTO forecast_sources(key, body) VALUES (?1, ?2)
+                 ON CONFLICT(key) DO UPDATE SET body = excluded.body",
+                params![key, body],
             )?;
             Ok(())
         })

@@ -120,6 +120,7 @@ mod tests {
             predicted_next: None,
             valve: None,
             surrogate: None,
+            forecast: None,
         }
     }
 

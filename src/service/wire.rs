@@ -131,6 +131,10 @@ pub struct FieldSpec {
     /// litres and a cycle-and-soak split ([`super::valve`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub irrigation_system: Option<super::valve::IrrigationSystem>,
+    /// A forecast provider the daemon polls for this field (instead of
+    /// forecasts sent to it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forecast_source: Option<crate::adapters::forecast::SourceSpec>,
 }
 
 fn default_irrigation_max() -> f64 {
@@ -678,6 +682,7 @@ impl FieldSpec {
             sensors: Vec::new(),
             simulation: Some(SimulationSpec::default()),
             irrigation_system: None,
+            forecast_source: None,
         }
     }
 
@@ -761,6 +766,9 @@ impl FieldSpec {
             if !ids.insert(sensor.id.as_str()) {
                 return Err(format!("sensors[{i}].id '{}' is used twice", sensor.id));
             }
+        }
+        if let Some(source) = &self.forecast_source {
+            source.validate()?;
         }
         match (&self.actuator, &self.simulation) {
             (Actuator::Simulated, Some(sim)) => {
@@ -996,6 +1004,23 @@ pub struct Setpoint {
     /// used one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub surrogate: Option<String>,
+    /// The forecast the cycle used (absent in setpoints stored before).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forecast: Option<ForecastUsed>,
+}
+
+/// Which forecast a cycle used: `source` is open-meteo or met-norway (a
+/// polled provider), posted (sent to the API), simulated (a simulated
+/// field's scenario) or climatology (none fresh); when it was issued and,
+/// for a provider, fetched. Steps a forecast did not cover were filled from
+/// the climatology (flag `default-forecast`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ForecastUsed {
+    pub source: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub issued_at: Option<DateTime<Utc>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fetched_at: Option<DateTime<Utc>>,
 }
 
 #[cfg(test)]

@@ -1,0 +1,3 @@
+//! Adapters to the outside world the daemon pulls from: forecast providers.
+
+pub mod forecast;
