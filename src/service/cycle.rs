@@ -202,10 +202,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                 .map_err(|e| e.to_string()),
                 None => {
                     let soil = spec.soil.nominal().unwrap_or(VanGenuchten::SANDY_LOAM);
-                    let head = soil.pressure_head_at(theta.clamp(
-                        soil.residual_water_content + 1e-6,
-                        soil.saturated_water_content - 1e-6,
-                    ));
+                    let head = equilibrium_head(&soil, theta);
                     Plant::new(FieldSettings {
                         soil,
                         crop: spec.crop(),
@@ -327,6 +324,15 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     }
 }
 
+/// The uniform head of a column in equilibrium with a measured θ (kept
+/// strictly inside (θr, θs), where the head is finite).
+fn equilibrium_head(soil: &VanGenuchten, theta: f64) -> f64 {
+    soil.pressure_head_at(theta.clamp(
+        soil.residual_water_content + 1e-6,
+        soil.saturated_water_content - 1e-6,
+    ))
+}
+
 /// The column a valve schedule is predicted on: the state estimate, or the
 /// declared soil in equilibrium with the current θ (as the Richards
 /// controller starts without an estimate); None without either.
@@ -343,10 +349,7 @@ fn valve_start(inputs: &CycleInputs, current: Option<f64>) -> Option<valve::Colu
     let theta = current?;
     let soil = spec.soil.nominal().ok()?;
     let defaults = FieldSettings::default();
-    let head = soil.pressure_head_at(theta.clamp(
-        soil.residual_water_content + 1e-6,
-        soil.saturated_water_content - 1e-6,
-    ));
+    let head = equilibrium_head(&soil, theta);
     Some(valve::ColumnStart {
         soil,
         crop: spec.crop(),
