@@ -148,16 +148,7 @@ pub fn fine_tune(
         ..FieldSettings::default()
     };
     let weather = training_weather();
-    let cache_name: String = soil_name
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
+    let cache_name = super::pipeline::cache_name(soil_name);
     let scaling = scaling_for(&soil);
     let mut get = |spec: &DatasetSpec| -> Result<Series, FineTuneError> {
         if stop() {

@@ -388,6 +388,20 @@ fn summary(
     }
 }
 
+/// The file-name-safe form of a soil's name that keys the data cache.
+pub fn cache_name(soil_name: &str) -> String {
+    soil_name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
 /// Runs the whole plan for its soil, named `soil_name` (a texture name or
 /// `ks=…,alpha=…,n=…,theta_r=…,theta_s=…`, recorded in the model files),
 /// writing the model files and `training-report.md` into `out_dir`,
@@ -405,17 +419,7 @@ pub fn run_training(
         ..FieldSettings::default()
     };
     let weather = training_weather();
-    // the data cache is keyed by a file-name-safe form of the soil's name
-    let cache_name: String = soil_name
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
+    let cache_name = cache_name(soil_name);
     let cache_name = cache_name.as_str();
     let scaling = scaling_for(&plan.soil);
     let get = |spec: &DatasetSpec, progress: &mut dyn FnMut(ProgressEvent)| {
