@@ -75,14 +75,20 @@ seed = 4
         .unwrap()
         .to_string();
     // wait for a few control cycles
-    let deadline = Instant::now() + Duration::from_secs(60);
+    let deadline = Instant::now() + Duration::from_secs(90);
     loop {
         let out = Command::new("curl")
             .args(["-s", &format!("{base}/v1/fields/2/setpoints")])
             .output()
             .unwrap();
         let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_default();
-        if v.as_array().is_some_and(|a| a.len() >= 3) {
+        // the rain scenario rains from hour 38 of the field's first day: wait
+        // until a cycle has planned with rain in its own period
+        let rained = |a: &Vec<serde_json::Value>| {
+            a.iter()
+                .any(|s| s["rain_mm"][0].as_f64().is_some_and(|r| r > 0.0))
+        };
+        if v.as_array().is_some_and(|a| a.len() >= 3 && rained(a)) {
             break;
         }
         assert!(Instant::now() < deadline, "no control cycles");
@@ -100,6 +106,30 @@ seed = 4
         "too few measured points"
     );
     assert!(svg.contains("<polyline"), "no lines");
+    // the lower panel's legend: irrigation, past and forecast rain, ET0;
+    // the upper one's: the prediction with and without the irrigation
+    for label in [
+        "irrigation",
+        "rain (as forecast for its period)",
+        "forecast rain",
+        "ET0 (past and forecast)",
+        "predicted θ (planned irrigation)",
+        "predicted θ without irrigation",
+        "measured θ",
+        "true θ",
+    ] {
+        assert!(svg.contains(label), "legend '{label}' missing: {svg}");
+    }
+    // the rain scenario's field draws rain bars (past, in cyan)
+    let svg = Command::new("curl")
+        .args(["-s", &format!("{base}/v1/fields/2/chart.svg?hours=24")])
+        .output()
+        .unwrap();
+    let svg = String::from_utf8_lossy(&svg.stdout);
+    assert!(
+        svg.to_ascii_uppercase().contains("FILL=\"#17BECF\""),
+        "no past rain bars on the rain field: {svg}"
+    );
     // the profile: the estimate's band and line, the simulated truth
     let svg = Command::new("curl")
         .args(["-s", &format!("{base}/v1/fields/1/profile.svg")])
@@ -173,6 +203,10 @@ seed = 4
         // every decision explained in words
         assert_eq!(html.matches("class=\"why\">Irrigate ").count(), 2, "{html}");
         assert!(html.contains("optimiser: "), "{html}");
+        assert!(
+            html.contains(" with this irrigation, ") && html.contains(" without"),
+            "no prediction without irrigation in the explanation: {html}"
+        );
         assert_eq!(
             html.matches("data-loaded=\"yes\"").count(),
             4,

@@ -163,7 +163,9 @@ fn setpoints_carry_valve_time_and_the_water_is_accounted_and_exported() {
     assert_eq!(setpoints.len(), stored.as_array().unwrap().len());
     assert_eq!(setpoints.len(), 3);
     assert!(
-        setpoints.iter().all(|r| r[8].contains("solver")),
+        setpoints
+            .iter()
+            .all(|r| r[8].starts_with("Irrigate ") && r[8].contains("optimiser: ")),
         "{setpoints:?}"
     );
     assert!(

@@ -44,6 +44,7 @@ pub fn render(data: &ChartData<'_>) -> Result<String, String> {
             .collect();
         if let Some(s) = latest {
             values.extend(s.predicted_theta.iter().copied());
+            values.extend(s.predicted_theta_dry.iter().copied());
             values.extend(s.zone.iter().flat_map(|z| [z[0], z[1]]));
         }
         let (lo, hi) = values
@@ -92,9 +93,16 @@ pub fn render(data: &ChartData<'_>) -> Result<String, String> {
                     .enumerate()
                     .map(|(k, z)| (start + (k + 1) as f64 * step, z[side]))
                     .collect();
-                chart
+                let series = chart
                     .draw_series(DashedLineSeries::new(pts, 5, 4, green.stroke_width(1)))
                     .map_err(|e| e.to_string())?;
+                if side == 0 {
+                    series
+                        .label("zone (shaded: in force; dashed: the plan's)")
+                        .legend(move |(x, y)| {
+                            Rectangle::new([(x, y - 4), (x + 16, y + 4)], green.mix(0.3).filled())
+                        });
+                }
             }
             let predicted: Vec<(f64, f64)> = s
                 .predicted_theta
@@ -107,8 +115,23 @@ pub fn render(data: &ChartData<'_>) -> Result<String, String> {
             chart
                 .draw_series(LineSeries::new(predicted, orange.stroke_width(2)))
                 .map_err(|e| e.to_string())?
-                .label("predicted θ")
+                .label("predicted θ (planned irrigation)")
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], orange));
+            let dry: Vec<(f64, f64)> = s
+                .predicted_theta_dry
+                .iter()
+                .enumerate()
+                .map(|(k, v)| (start + (k + 1) as f64 * step, *v))
+                .filter(|p| p.1.is_finite())
+                .collect();
+            if !dry.is_empty() {
+                let red = RGBColor(214, 39, 40);
+                chart
+                    .draw_series(DashedLineSeries::new(dry, 6, 4, red.stroke_width(2)))
+                    .map_err(|e| e.to_string())?
+                    .label("predicted θ without irrigation")
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], red));
+            }
         }
         let truth: Vec<(f64, f64)> = data
             .measurements
@@ -140,48 +163,156 @@ pub fn render(data: &ChartData<'_>) -> Result<String, String> {
             .draw()
             .map_err(|e| e.to_string())?;
 
-        // irrigation (past setpoints) and forecast rain as bars
-        let mut bars: Vec<(f64, f64, f64, RGBColor)> = Vec::new();
-        for s in data.setpoints {
-            let a = hours_between(data.now, s.valid_from);
-            let b = hours_between(data.now, s.valid_until);
-            if b > x0 && s.amount_mm > 0.0 {
-                bars.push((a.max(x0), a.max(x0) + 0.5 * (b - a), s.amount_mm, blue));
-            }
-        }
-        if let Some(f) = data.forecast {
-            let step = f.step_s / 3600.0;
-            let start = hours_between(data.now, f.start);
-            for (k, p) in f.precip_mm.iter().enumerate() {
-                let a = start + k as f64 * step;
-                if *p > 0.0 && a >= x0 && a <= x1 {
-                    bars.push((a + 0.5 * step, a + step, *p, RGBColor(128, 128, 128)));
-                }
-            }
-        }
-        let top_mm = bars.iter().map(|b| b.2).fold(0.5f64, f64::max);
+        // the lower panel, per control period: irrigation given (left half),
+        // the rain each cycle planned with for its own period (right half),
+        // the latest cycle's rain forecast over its horizon, and ET0
+        let periods = water_periods(data, x0, x1);
+        let top_mm = periods
+            .iter()
+            .map(|p| p.irrigation_mm.max(p.rain_mm).max(p.et0_mm))
+            .fold(0.5f64, f64::max);
         let mut lower = ChartBuilder::on(&bottom)
             .margin(10)
             .x_label_area_size(30)
             .y_label_area_size(56)
-            .build_cartesian_2d(x0..x1, 0.0..top_mm * 1.1)
+            .build_cartesian_2d(x0..x1, 0.0..top_mm * 1.25)
             .map_err(|e| e.to_string())?;
         lower
             .configure_mesh()
             .max_light_lines(2)
             .x_desc("hours from now")
-            .y_desc("mm")
+            .y_desc("mm per period")
             .draw()
             .map_err(|e| e.to_string())?;
+        let rain_past = RGBColor(23, 190, 207);
+        let rain_ahead = RGBColor(150, 150, 150);
+        let brown = RGBColor(140, 86, 75);
+        let bar = |a: f64, b: f64, v: f64, c: RGBColor| {
+            Rectangle::new([(a.max(x0), 0.0), (b.min(x1), v)], c.filled())
+        };
         lower
-            .draw_series(
-                bars.iter()
-                    .map(|&(a, b, v, c)| Rectangle::new([(a, 0.0), (b, v)], c.filled())),
-            )
+            .draw_series(periods.iter().filter(|p| p.irrigation_mm > 0.0).map(|p| {
+                bar(
+                    p.from,
+                    p.from + 0.5 * (p.to - p.from),
+                    p.irrigation_mm,
+                    blue,
+                )
+            }))
+            .map_err(|e| e.to_string())?
+            .label("irrigation")
+            .legend(move |(x, y)| Rectangle::new([(x, y - 4), (x + 16, y + 4)], blue.filled()));
+        for (ahead, colour, label) in [
+            (false, rain_past, "rain (as forecast for its period)"),
+            (true, rain_ahead, "forecast rain"),
+        ] {
+            lower
+                .draw_series(
+                    periods
+                        .iter()
+                        .filter(|p| p.ahead == ahead && p.rain_mm > 0.0)
+                        .map(|p| bar(p.from + 0.5 * (p.to - p.from), p.to, p.rain_mm, colour)),
+                )
+                .map_err(|e| e.to_string())?
+                .label(label)
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 4), (x + 16, y + 4)], colour.filled())
+                });
+        }
+        let et0: Vec<(f64, f64)> = periods
+            .iter()
+            .flat_map(|p| [(p.from, p.et0_mm), (p.to, p.et0_mm)])
+            .filter(|q| q.0 >= x0 && q.0 <= x1)
+            .collect();
+        lower
+            .draw_series(LineSeries::new(et0, brown.stroke_width(2)))
+            .map_err(|e| e.to_string())?
+            .label("ET0 (past and forecast)")
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], brown));
+        lower
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
             .map_err(|e| e.to_string())?;
         root.present().map_err(|e| e.to_string())?;
     }
     Ok(svg)
+}
+
+/// One control period of the lower panel, in hours from now.
+#[derive(Debug, Clone, PartialEq)]
+struct WaterPeriod {
+    from: f64,
+    to: f64,
+    irrigation_mm: f64,
+    rain_mm: f64,
+    et0_mm: f64,
+    /// A forecast period of the latest cycle (not yet begun when it ran).
+    ahead: bool,
+}
+
+/// The periods of the lower panel: every setpoint's own period (its
+/// irrigation and the weather its cycle planned with), then the latest
+/// cycle's forecast for the rest of its horizon; a latest setpoint without
+/// recorded weather (stored before setpoints recorded it) falls back to the
+/// latest stored forecast.
+fn water_periods(data: &ChartData<'_>, x0: f64, x1: f64) -> Vec<WaterPeriod> {
+    let mut out = Vec::new();
+    for s in data.setpoints {
+        let from = hours_between(data.now, s.valid_from);
+        let to = hours_between(data.now, s.valid_until);
+        if to <= x0 || from >= x1 {
+            continue;
+        }
+        out.push(WaterPeriod {
+            from,
+            to,
+            irrigation_mm: s.amount_mm,
+            rain_mm: s.rain_mm.first().copied().unwrap_or(0.0),
+            et0_mm: s.et0_mm.first().copied().unwrap_or(0.0),
+            ahead: false,
+        });
+    }
+    let latest = data.setpoints.last();
+    match latest {
+        Some(s) if !s.rain_mm.is_empty() => {
+            let step = hours_between(s.valid_from, s.valid_until);
+            let start = hours_between(data.now, s.valid_from);
+            for k in 1..s.rain_mm.len().min(s.et0_mm.len()) {
+                out.push(WaterPeriod {
+                    from: start + k as f64 * step,
+                    to: start + (k + 1) as f64 * step,
+                    irrigation_mm: 0.0,
+                    rain_mm: s.rain_mm[k],
+                    et0_mm: s.et0_mm[k],
+                    ahead: true,
+                });
+            }
+        }
+        _ => {
+            if let Some(f) = data.forecast {
+                let step = f.step_s / 3600.0;
+                let start = hours_between(data.now, f.start);
+                for (k, (p, e)) in f.precip_mm.iter().zip(&f.et0_mm).enumerate() {
+                    let from = start + k as f64 * step;
+                    if from >= 0.0 && from <= x1 {
+                        out.push(WaterPeriod {
+                            from,
+                            to: from + step,
+                            irrigation_mm: 0.0,
+                            rain_mm: *p,
+                            et0_mm: *e,
+                            ahead: true,
+                        });
+                    }
+                }
+            }
+        }
+    }
+    out.retain(|p| p.from.is_finite() && p.to.is_finite());
+    out
 }
 
 /// What the profile chart shows: the estimate's θ against depth with its

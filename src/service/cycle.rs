@@ -4,7 +4,7 @@
 //! unit-tested on plain data. The engine then writes the setpoint once.
 
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use chrono::{DateTime, TimeDelta, Timelike, Utc};
 
@@ -182,6 +182,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     }
     let mut bias = 0.0;
     let mut one_step: Option<SurrogateModel> = None;
+    let mut dry = Vec::new();
     let measured_samples = measured_samples(inputs);
     let solution = match (current, spec.model) {
         (None, _) => None,
@@ -214,7 +215,11 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                 }
             };
             match model {
-                Ok(mut model) => Some(mpc.solve(&mut model as &mut dyn PredictionModel)),
+                Ok(mut model) => {
+                    let sol = mpc.solve(&mut model as &mut dyn PredictionModel);
+                    dry = without_irrigation(&mut model, n, cancel);
+                    Some(sol)
+                }
                 Err(e) => {
                     tracing::warn!(field = field.id, error = %e, "no Richards model");
                     None
@@ -247,6 +252,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             model.bias = bias;
             model.rain = rain_rate.clone();
             let sol = mpc.solve(&mut model);
+            dry = without_irrigation(&mut model, n, cancel);
             one_step = Some(model);
             Some(sol)
         }
@@ -321,6 +327,23 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         valve,
         surrogate: None,
         forecast: None,
+        predicted_theta_dry: dry,
+        rain_mm: weather.iter().map(|w| w.precip_mm).collect(),
+        et0_mm: weather.iter().map(|w| w.et0_mm).collect(),
+        explanation: String::new(),
+    }
+}
+
+/// θ over the horizon of `n` steps with no irrigation at all, for the
+/// explanation; empty when the model fails or the cycle is being cancelled.
+fn without_irrigation(model: &mut dyn PredictionModel, n: usize, cancel: &AtomicBool) -> Vec<f64> {
+    if cancel.load(Ordering::Relaxed) {
+        return Vec::new();
+    }
+    let mut out = vec![0.0; n];
+    match model.predict(&vec![0.0; n], &mut out) {
+        Ok(()) if out.iter().all(|v| v.is_finite()) => out,
+        _ => Vec::new(),
     }
 }
 
@@ -763,6 +786,10 @@ mod tests {
             valve: None,
             surrogate: None,
             forecast: None,
+            predicted_theta_dry: Vec::new(),
+            rain_mm: Vec::new(),
+            et0_mm: Vec::new(),
+            explanation: String::new(),
         };
         // newest first; a third, older one does not count
         i.recent = vec![

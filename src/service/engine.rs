@@ -569,6 +569,7 @@ impl Engine {
         };
         setpoint.surrogate = own_id;
         setpoint.forecast = Some(used);
+        setpoint.explanation = super::explain::explain(&setpoint, field.spec.irrigation_max);
         self.store.add_setpoint(&setpoint)?;
         Ok(setpoint)
     }

@@ -176,8 +176,13 @@ fn measurement_row(m: &Measurement, out: &mut String) {
     );
 }
 
-/// Why a setpoint is what it is, in words.
+/// Why a setpoint is what it is, in words: the explanation stored with it,
+/// or (setpoints stored before explanations were) a short one rebuilt from
+/// its status, first-step prediction and flags.
 pub fn explanation(s: &Setpoint) -> String {
+    if !s.explanation.is_empty() {
+        return s.explanation.clone();
+    }
     let mut parts = vec![format!("solver {}", s.status)];
     if let (Some(theta), Some([low, up])) = (s.predicted_theta.first(), s.zone.first()) {
         parts.push(format!(

@@ -7,6 +7,7 @@ pub mod chart;
 pub mod clock;
 pub mod cycle;
 pub mod engine;
+pub mod explain;
 pub mod history;
 pub mod metrics;
 pub mod settings;

@@ -121,6 +121,10 @@ mod tests {
             valve: None,
             surrogate: None,
             forecast: None,
+            predicted_theta_dry: Vec::new(),
+            rain_mm: Vec::new(),
+            et0_mm: Vec::new(),
+            explanation: String::new(),
         }
     }
 

@@ -1007,6 +1007,21 @@ pub struct Setpoint {
     /// The forecast the cycle used (absent in setpoints stored before).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub forecast: Option<ForecastUsed>,
+    /// Predicted θ at the end of each horizon step without any irrigation
+    /// (the same model and weather as `predicted_theta`); empty when the
+    /// cycle made no prediction.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub predicted_theta_dry: Vec<f64>,
+    /// The rain the cycle planned with, per horizon step [mm].
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rain_mm: Vec<f64>,
+    /// The reference evapotranspiration the cycle planned with, per horizon
+    /// step [mm].
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub et0_mm: Vec<f64>,
+    /// Why the setpoint is what it is, in words (`service::explain`).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub explanation: String,
 }
 
 /// Which forecast a cycle used: `source` is open-meteo or met-norway (a
