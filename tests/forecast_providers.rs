@@ -45,6 +45,8 @@ struct Replay {
     met: Value,
     mode: Mode,
     last_modified: &'static str,
+    /// (Date, Expires) headers sent with every good answer.
+    expires: Option<(&'static str, &'static str)>,
     seen: Vec<Seen>,
 }
 
@@ -86,12 +88,18 @@ async fn answer(State(s): State<Shared>, uri: Uri, headers: HeaderMap) -> Respon
         }
         Mode::Ok => {}
     }
+    let mut validity = HeaderMap::new();
+    if let Some((date, expires)) = r.expires {
+        validity.insert("date", date.parse().unwrap());
+        validity.insert("expires", expires.parse().unwrap());
+    }
     // MET Norway honours If-Modified-Since; the replay does for both
     if ims.as_deref() == Some(r.last_modified) {
-        return StatusCode::NOT_MODIFIED.into_response();
+        return (StatusCode::NOT_MODIFIED, validity).into_response();
     }
     (
         StatusCode::OK,
+        validity,
         [
             ("content-type", "application/json"),
             ("last-modified", r.last_modified),
@@ -107,6 +115,7 @@ async fn serve(open_meteo: Value, met: Value) -> (String, Shared) {
         met,
         mode: Mode::Ok,
         last_modified: "Mon, 01 Jun 2026 00:00:00 GMT",
+        expires: None,
         seen: Vec::new(),
     }));
     let app = Router::new().fallback(answer).with_state(shared.clone());
@@ -551,6 +560,45 @@ async fn a_thousand_fields_at_three_locations_make_one_request_per_source_then_3
         "1000 fields, {} sources: first poll {first_poll:?}",
         distinct.len()
     );
+}
+
+#[tokio::test]
+async fn an_answer_valid_past_the_poll_interval_is_not_requested_again_before_it_expires() {
+    rootzone::service::install_tls();
+    let (base, replay) = serve(Value::Null, met_fixture()).await;
+    // MET Norway's answer is valid for 3 h (its Expires less its Date);
+    // the poll interval is 1 h
+    replay.lock().unwrap().expires = Some((
+        "Mon, 01 Jun 2026 00:00:05 GMT",
+        "Mon, 01 Jun 2026 03:00:05 GMT",
+    ));
+    let dir = tempfile::tempdir().unwrap();
+    let store = Arc::new(Store::open(dir.path()).unwrap());
+    let f = field(
+        &store,
+        "fjord",
+        7200.0,
+        source(Provider::MetNorway, &base, 59.91, 10.75),
+    );
+    let poller = Poller::new(settings(), store.clone()).unwrap();
+    let t0 = at("2026-06-01T00:00:00Z");
+    let fields = std::slice::from_ref(&f);
+    assert_eq!(poller.poll(t0, fields).await.unwrap().requests, 1);
+    for hours in [1, 2] {
+        let r = poller
+            .poll(t0 + TimeDelta::hours(hours), fields)
+            .await
+            .unwrap();
+        assert_eq!(r.requests, 0, "{hours} h: {r:?}");
+    }
+    let r = poller.poll(t0 + TimeDelta::hours(3), fields).await.unwrap();
+    assert_eq!((r.requests, r.not_modified), (1, 1), "{r:?}");
+    // without Expires the poll interval rules again
+    replay.lock().unwrap().expires = None;
+    let r = poller.poll(t0 + TimeDelta::hours(6), fields).await.unwrap();
+    assert_eq!(r.requests, 1, "{r:?}");
+    let r = poller.poll(t0 + TimeDelta::hours(7), fields).await.unwrap();
+    assert_eq!(r.requests, 1, "{r:?}");
 }
 
 fn state_of(store: &Store, spec: &SourceSpec) -> SourceState {

@@ -1,7 +1,8 @@
 //! Forecast providers: a field may name a source (`forecast_source` in its
 //! spec) instead of being sent forecasts. The poller fetches each distinct
 //! (provider, base URL, rounded location) once per poll, however many
-//! fields share it, honours `Last-Modified` / `If-Modified-Since`, backs off
+//! fields share it, honours `Last-Modified` / `If-Modified-Since` and does
+//! not come back before an answer's `Expires`, backs off
 //! exponentially on failure, and keeps the last good forecast when a
 //! response is refused (malformed, truncated, wrong units). A provider's
 //! answer becomes a [`Series`] of UTC intervals with ET0 and precipitation
@@ -457,9 +458,31 @@ pub struct PollReport {
 type SourceWrite = (String, SourceState, Vec<(i64, Forecast)>);
 
 enum Outcome {
-    Fresh(Series, Option<String>),
-    NotModified,
+    /// A new forecast, its `Last-Modified` and how long it is valid (its
+    /// `Expires` less its `Date`) [s].
+    Fresh(Series, Option<String>, Option<f64>),
+    /// Unchanged (304), with how long it stays valid [s].
+    NotModified(Option<f64>),
     Failed(String),
+}
+
+/// Seconds until the answer expires (`Expires` less the answer's `Date`,
+/// or less the real time when it has no `Date`), in [0, 86400]; None
+/// without a readable `Expires`. Counted from the answer's own `Date`, so
+/// an accelerated clock waits the same number of its own seconds.
+fn expires_in(headers: &reqwest::header::HeaderMap) -> Option<f64> {
+    let date = |name: reqwest::header::HeaderName| {
+        headers
+            .get(name)?
+            .to_str()
+            .ok()
+            .and_then(|v| DateTime::parse_from_rfc2822(v.trim()).ok())
+            .map(|d| d.to_utc())
+    };
+    let expires = date(reqwest::header::EXPIRES)?;
+    let base = date(reqwest::header::DATE).unwrap_or_else(Utc::now);
+    let s = (expires - base).num_milliseconds() as f64 / 1e3;
+    Some(s.clamp(0.0, 86_400.0))
 }
 
 /// Largest response accepted [bytes].
@@ -552,7 +575,7 @@ impl Poller {
         for (key, members, mut state, outcome) in outcomes {
             let mut forecasts = Vec::new();
             match outcome {
-                Outcome::Fresh(series, last_modified) => {
+                Outcome::Fresh(series, last_modified, expires) => {
                     report.updated += 1;
                     for &(id, period) in &members {
                         if let Some(fc) = to_forecast(&series, period, now) {
@@ -565,14 +588,14 @@ impl Poller {
                     state.checked_at = Some(now);
                     state.failures = 0;
                     state.last_error = None;
-                    state.next_poll_at = Some(now + secs(self.settings.poll_interval_s));
+                    state.next_poll_at = Some(now + secs(self.next_wait(expires)));
                 }
-                Outcome::NotModified => {
+                Outcome::NotModified(expires) => {
                     report.not_modified += 1;
                     state.checked_at = Some(now);
                     state.failures = 0;
                     state.last_error = None;
-                    state.next_poll_at = Some(now + secs(self.settings.poll_interval_s));
+                    state.next_poll_at = Some(now + secs(self.next_wait(expires)));
                 }
                 Outcome::Failed(reason) => {
                     report.failed += 1;
@@ -601,6 +624,13 @@ impl Poller {
         Ok(report)
     }
 
+    /// The wait after a good answer [s]: the poll interval, or longer when
+    /// the answer says it stays valid longer (MET Norway asks clients not
+    /// to come back before `Expires`).
+    fn next_wait(&self, expires_in: Option<f64>) -> f64 {
+        self.settings.poll_interval_s.max(expires_in.unwrap_or(0.0))
+    }
+
     /// The wait after `failures` failures in a row [s]: retry_s doubled per
     /// failure after the first, at most max_backoff_s.
     pub fn backoff(&self, failures: u32) -> f64 {
@@ -627,9 +657,10 @@ impl Poller {
             Err(e) => return Outcome::Failed(format!("request failed: {e}")),
         };
         let status = resp.status();
+        let expires = expires_in(resp.headers());
         if status == reqwest::StatusCode::NOT_MODIFIED {
             return if state.series.is_some() {
-                Outcome::NotModified
+                Outcome::NotModified(expires)
             } else {
                 Outcome::Failed("304 Not Modified without a forecast kept".into())
             };
@@ -663,7 +694,7 @@ impl Poller {
             Ok(series) if series.intervals.is_empty() => {
                 Outcome::Failed("the response holds no complete hour".into())
             }
-            Ok(series) => Outcome::Fresh(series, last_modified),
+            Ok(series) => Outcome::Fresh(series, last_modified, expires),
             Err(e) => Outcome::Failed(e.to_string()),
         }
     }
