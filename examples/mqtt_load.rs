@@ -193,14 +193,15 @@ async fn main() {
             latencies.last().copied().unwrap_or(0.0) * 1e3
         );
     }
-    let refused: f64 = state
+    let refused: u64 = state
         .metrics
         .render()
         .lines()
         .filter(|l| l.starts_with("rootzone_mqtt_readings_refused_total{"))
-        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
         .sum();
-    println!("refused: {refused}");
+    let ingest_p99 = state.metrics.mqtt_ingest_seconds.get_sample_count();
+    println!("refused: {refused}; readings in the ingest histogram: {ingest_p99}");
     stop.cancel();
     let _ = server.await;
     let _ = broker.kill();
