@@ -312,6 +312,14 @@ fn a_sensor_reading_drives_the_next_cycle_and_its_valve_command_arrives() {
     assert!(valve.get("command_topic").is_none(), "read-only: {valve}");
     assert_eq!(watcher.raw_on("rootzone/status").last().unwrap(), b"online");
 
+    // Home Assistant's birth message brings the discovery again
+    let valve_topic = format!("homeassistant/valve/rootzone-test_{id}/config");
+    let before = watcher.raw_on(&valve_topic).len();
+    watcher.publish("homeassistant/status", "online");
+    wait_until("the discovery is published again", 10, || {
+        watcher.raw_on(&valve_topic).len() > before
+    });
+
     // the sensor publishes a plain raw number; the daemon stamps it
     let sensor = Peer::connect(&broker, "probe-node", true, &[]);
     sensor.publish(&format!("rootzone/fields/{id}/sensors/probe"), "300");
