@@ -518,6 +518,9 @@ async fn delete_field(
     authorize(&state, &headers)?;
     let field = load_field(&state, &id).await?;
     stop_field(&state, field.id);
+    if let Some(mqtt) = &state.mqtt {
+        mqtt.withdraw(&state, field.id);
+    }
     let engine = state.engine.clone();
     blocking(move || {
         engine
@@ -613,80 +616,21 @@ async fn post_measurements(
         ));
     }
     let field = load_field(&state, &id).await?;
-    let sensors = field.spec.effective_sensors();
     let now = state.clock.now();
-    let skew = TimeDelta::milliseconds((state.settings.limits.max_future_skew_s * 1000.0) as i64);
+    let skew = state.settings.limits.max_future_skew_s;
     let mut parsed = Vec::with_capacity(batch.len());
     for (i, m) in batch.into_iter().enumerate() {
-        let time = parse_time(&format!("measurements[{i}].time"), &m.time)?;
-        if time > now + skew {
-            return Err(ApiError::bad(format!(
-                "measurements[{i}].time = {} lies more than {} s in the future (now {})",
-                m.time,
-                state.settings.limits.max_future_skew_s,
-                now.to_rfc3339()
-            )));
-        }
-        super::wire::check_time(&format!("measurements[{i}].time"), time).map_err(ApiError::bad)?;
-        // the sensor: named, or the primary one
-        let (index, sensor) = match &m.sensor {
-            None => (0, &sensors[0]),
-            Some(name) => match sensors.iter().enumerate().find(|(_, s)| &s.id == name) {
-                Some(found) => found,
-                None => {
-                    let known: Vec<&str> = sensors.iter().map(|s| s.id.as_str()).collect();
-                    return Err(ApiError::bad(format!(
-                        "measurements[{i}].sensor '{name}' is not a sensor of field {}; its \
-                         sensors: {}",
-                        field.id,
-                        known.join(", ")
-                    )));
-                }
-            },
-        };
-        let theta = match (m.theta, m.raw) {
-            (Some(_), Some(_)) => {
-                return Err(ApiError::bad(format!(
-                    "measurements[{i}] gives theta and raw: give one (raw is calibrated to θ)"
-                )));
-            }
-            (None, None) => {
-                return Err(ApiError::bad(format!(
-                    "measurements[{i}] needs theta or raw"
-                )));
-            }
-            (Some(theta), None) => theta,
-            (None, Some(raw)) => {
-                super::wire::check_range(
-                    &format!("measurements[{i}].raw"),
-                    raw,
-                    super::wire::RAW_RANGE,
-                )
-                .map_err(ApiError::bad)?;
-                let Some(calibration) = &sensor.calibration else {
-                    return Err(ApiError::bad(format!(
-                        "measurements[{i}].raw: sensor '{}' has no calibration; send theta",
-                        sensor.id
-                    )));
-                };
-                calibration.theta(raw).map_err(|e| {
-                    ApiError::bad(format!("measurements[{i}]: sensor '{}': {e}", sensor.id))
-                })?
-            }
-        };
-        if !(theta.is_finite() && (0.0..=1.0).contains(&theta)) {
-            return Err(ApiError::bad(format!(
-                "measurements[{i}].theta = {theta} must lie in [0, 1]"
-            )));
-        }
-        parsed.push(Measurement {
+        let key = format!("measurements[{i}]");
+        let time = parse_time(&format!("{key}.time"), &m.time)?;
+        let reading = super::wire::ReadingIn {
             time,
-            theta,
-            // the primary sensor's readings are stored without an id
-            sensor: (index > 0).then(|| sensor.id.clone()),
+            theta: m.theta,
             raw: m.raw,
-            true_theta: None,
-        });
+            sensor: m.sensor.as_deref(),
+        };
+        let checked = super::wire::check_reading(&key, reading, &field, now, skew)
+            .map_err(|e| ApiError::bad(e.message))?;
+        parsed.push(checked);
     }
     let engine = state.engine.clone();
     let n = parsed.len();

@@ -1,8 +1,8 @@
 //! Prometheus metrics of the daemon.
 
 use prometheus::{
-    CounterVec, Encoder, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, Opts,
-    Registry, TextEncoder,
+    CounterVec, Encoder, GaugeVec, Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge,
+    Opts, Registry, TextEncoder,
 };
 
 /// The daemon's metrics and their registry.
@@ -17,6 +17,13 @@ pub struct Metrics {
     pub webhooks: IntCounterVec,
     pub water_mm: CounterVec,
     pub water_m3: CounterVec,
+    pub mqtt_received: IntCounter,
+    pub mqtt_refused: IntCounterVec,
+    pub mqtt_duplicates: IntCounter,
+    pub mqtt_published: IntCounterVec,
+    pub mqtt_connected: IntGauge,
+    pub mqtt_connections: IntCounter,
+    pub mqtt_ingest_seconds: Histogram,
 }
 
 impl Metrics {
@@ -91,8 +98,61 @@ impl Metrics {
             &["field"],
         )
         .expect("valid metric");
+        let mqtt_received = IntCounter::new(
+            "rootzone_mqtt_messages_received_total",
+            "MQTT messages received on the daemon's subscriptions",
+        )
+        .expect("valid metric");
+        let mqtt_refused = IntCounterVec::new(
+            Opts::new(
+                "rootzone_mqtt_readings_refused_total",
+                "MQTT sensor messages refused (never stored), by reason",
+            ),
+            &["reason"],
+        )
+        .expect("valid metric");
+        let mqtt_duplicates = IntCounter::new(
+            "rootzone_mqtt_readings_duplicate_total",
+            "MQTT readings already stored with the same value (redeliveries)",
+        )
+        .expect("valid metric");
+        let mqtt_published = IntCounterVec::new(
+            Opts::new(
+                "rootzone_mqtt_publications_total",
+                "MQTT publications of states and commands, by outcome (queued, dropped)",
+            ),
+            &["outcome"],
+        )
+        .expect("valid metric");
+        let mqtt_connected = IntGauge::new(
+            "rootzone_mqtt_connected",
+            "1 while connected to the MQTT broker with the sensor subscription granted",
+        )
+        .expect("valid metric");
+        let mqtt_connections = IntCounter::new(
+            "rootzone_mqtt_connections_total",
+            "MQTT connections made (ConnAck received)",
+        )
+        .expect("valid metric");
+        let mqtt_ingest_seconds = Histogram::with_opts(
+            HistogramOpts::new(
+                "rootzone_mqtt_ingest_seconds",
+                "Time from an MQTT reading's arrival to its commit",
+            )
+            .buckets(vec![
+                0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0,
+            ]),
+        )
+        .expect("valid metric");
         for c in [
-            Box::new(water_mm.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(mqtt_received.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(mqtt_refused.clone()),
+            Box::new(mqtt_duplicates.clone()),
+            Box::new(mqtt_published.clone()),
+            Box::new(mqtt_connected.clone()),
+            Box::new(mqtt_connections.clone()),
+            Box::new(mqtt_ingest_seconds.clone()),
+            Box::new(water_mm.clone()),
             Box::new(water_m3.clone()),
             Box::new(webhooks.clone()),
             Box::new(measurements.clone()),
@@ -115,6 +175,13 @@ impl Metrics {
             webhooks,
             water_mm,
             water_m3,
+            mqtt_received,
+            mqtt_refused,
+            mqtt_duplicates,
+            mqtt_published,
+            mqtt_connected,
+            mqtt_connections,
+            mqtt_ingest_seconds,
         }
     }
 

@@ -67,6 +67,8 @@ pub struct AppState {
     pub settings: Settings,
     /// The per-field surrogate training jobs.
     pub training: Arc<training::Jobs>,
+    /// The MQTT client (`mqtt.url` set).
+    pub mqtt: Option<Arc<crate::adapters::mqtt::client::Mqtt>>,
     /// Bounds the control cycles and simulations running at once.
     permits: Arc<Semaphore>,
     /// Per field, woken when its measurements are stored (a cycle waiting
@@ -79,8 +81,9 @@ pub struct AppState {
 }
 
 impl AppState {
-    /// The notification of field `id`'s stored measurements.
-    pub(crate) fn measured(&self, id: i64) -> Arc<tokio::sync::Notify> {
+    /// The notification of field `id`'s stored measurements (woken, with
+    /// `notify_waiters`, after every commit of new ones).
+    pub fn measured(&self, id: i64) -> Arc<tokio::sync::Notify> {
         self.measured
             .lock()
             .unwrap_or_else(|p| p.into_inner())
@@ -88,12 +91,19 @@ impl AppState {
             .or_default()
             .clone()
     }
+
+    /// Cancelled when the daemon shuts down.
+    pub fn shutdown_token(&self) -> CancellationToken {
+        self.shutdown.clone()
+    }
 }
 
 /// A built daemon, ready to serve on its listener.
 pub struct App {
     pub state: Arc<AppState>,
     listener: TcpListener,
+    /// The MQTT event loop, polled once the app runs.
+    mqtt_loop: Option<rumqttc::EventLoop>,
 }
 
 fn read_token(dir: &Path) -> Result<String, ServeError> {
@@ -247,6 +257,12 @@ impl App {
             &settings.data_dir,
         ));
         let own_models = training::OwnModels::at(settings.data_dir.join("surrogates"));
+        let (mqtt, mqtt_loop) = match crate::adapters::mqtt::client::Mqtt::new(&settings.mqtt)
+            .map_err(settings::SettingsError)?
+        {
+            Some((client, eventloop)) => (Some(Arc::new(client)), Some(eventloop)),
+            None => (None, None),
+        };
         let state = Arc::new(AppState {
             engine: Arc::new(
                 Engine::new(store, models)
@@ -256,6 +272,7 @@ impl App {
                     .own_models(own_models),
             ),
             training,
+            mqtt,
             clock,
             metrics: Metrics::new(),
             token,
@@ -266,7 +283,11 @@ impl App {
             shutdown: CancellationToken::new(),
             tracker: TaskTracker::new(),
         });
-        Ok(App { state, listener })
+        Ok(App {
+            state,
+            listener,
+            mqtt_loop,
+        })
     }
 
     pub fn local_addr(&self) -> std::io::Result<std::net::SocketAddr> {
@@ -280,6 +301,12 @@ impl App {
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<(), ServeError> {
         let state = self.state;
+        if let (Some(mqtt), Some(eventloop)) = (state.mqtt.clone(), self.mqtt_loop) {
+            let s = state.clone();
+            state
+                .tracker
+                .spawn(async move { crate::adapters::mqtt::client::run(s, mqtt, eventloop).await });
+        }
         // every field's first cycle runs now, then at its period boundaries
         for field in state.engine.store.fields()? {
             spawn_field(&state, &field, true);
@@ -323,6 +350,9 @@ impl App {
 /// Starts the scheduled tasks of a field: its control loop and, for a
 /// simulated field, its plant.
 pub(crate) fn start_field(state: &Arc<AppState>, field: &Field) {
+    if let Some(mqtt) = &state.mqtt {
+        mqtt.announce(state, field);
+    }
     spawn_field(state, field, false)
 }
 
@@ -614,6 +644,11 @@ async fn run_cycle_in(
         .engine
         .store
         .set_meta("clock", &state.clock.now().to_rfc3339());
+    if let Some(mqtt) = state.mqtt.clone() {
+        // the state document reads the store: off the executor
+        let (s, f, sp) = (state.clone(), field.clone(), setpoint.clone());
+        let _ = tokio::task::spawn_blocking(move || mqtt.publish_setpoint(&s, &f, &sp)).await;
+    }
     if let Actuator::Webhook { url, secret } = &field.spec.actuator {
         use tracing::Instrument;
         let body = serde_json::to_vec(&setpoint).map_err(|e| e.to_string())?;

@@ -44,6 +44,19 @@ pub const ENV_KEYS: &[&str] = &[
     "forecasts.timeout_s",
     "forecasts.contact",
     "forecasts.location_decimals",
+    "mqtt.url",
+    "mqtt.client_id",
+    "mqtt.username",
+    "mqtt.password",
+    "mqtt.topic_prefix",
+    "mqtt.discovery",
+    "mqtt.discovery_prefix",
+    "mqtt.keep_alive_s",
+    "mqtt.reconnect_min_s",
+    "mqtt.reconnect_max_s",
+    "mqtt.max_payload_bytes",
+    "mqtt.queue",
+    "mqtt.batch_max",
 ];
 
 /// The environment variable of a settings key.
@@ -77,6 +90,10 @@ pub struct Settings {
     /// Polled forecast providers (`ROOTZONE_FORECASTS__…`).
     #[serde(default)]
     pub forecasts: crate::adapters::forecast::ForecastSettings,
+    /// MQTT with Home Assistant discovery (`ROOTZONE_MQTT__…`); off unless
+    /// `mqtt.url` is set.
+    #[serde(default)]
+    pub mqtt: crate::adapters::mqtt::MqttSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
 }
@@ -221,6 +238,7 @@ impl Default for Settings {
             webhooks: WebhookSettings::default(),
             training: Default::default(),
             forecasts: Default::default(),
+            mqtt: Default::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -288,6 +306,7 @@ impl Settings {
         }
         self.training.validate().map_err(SettingsError)?;
         self.forecasts.validate().map_err(SettingsError)?;
+        self.mqtt.validate().map_err(SettingsError)?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",

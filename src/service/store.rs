@@ -166,6 +166,18 @@ fn time(ms: i64) -> DateTime<Utc> {
     Utc.timestamp_millis_opt(ms).single().unwrap_or_default()
 }
 
+/// What became of one reading of [`Store::add_readings`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ReadingOutcome {
+    Stored,
+    /// Already stored with the same θ.
+    Duplicate,
+    /// Already stored with this other θ: refused.
+    Conflict(f64),
+    /// The field is gone: refused.
+    NoField,
+}
+
 impl Store {
     /// Opens (creating) `dir/rootzone.sqlite3` and migrates it.
     /// The folder is made private (0700) when the daemon creates it or it
@@ -346,6 +358,57 @@ impl Store {
             }
             tx.commit()?;
             Ok(new)
+        })
+    }
+
+    /// Stores readings of many fields in one transaction (the MQTT ingest's
+    /// batches), each on its own: a reading whose (time, sensor) its field
+    /// already has with the same θ is a duplicate, with another θ a
+    /// conflict, and one of a field that is gone is refused; none of these
+    /// stops the others. Returns one outcome per reading, in order.
+    pub fn add_readings(
+        &self,
+        readings: &[(i64, Measurement)],
+    ) -> Result<Vec<ReadingOutcome>, StoreError> {
+        self.with(|c| {
+            let tx = c.transaction()?;
+            let mut outcomes = Vec::with_capacity(readings.len());
+            {
+                let mut existing = tx.prepare_cached(
+                    "SELECT theta FROM measurements
+                     WHERE field_id = ?1 AND time = ?2 AND COALESCE(sensor, '') = COALESCE(?3, '')",
+                )?;
+                let mut insert = tx.prepare_cached(
+                    "INSERT INTO measurements(field_id, time, theta, sensor, true_theta, raw)
+                     SELECT ?1, ?2, ?3, ?4, ?5, ?6 WHERE EXISTS (SELECT 1 FROM fields WHERE id = ?1)",
+                )?;
+                for (field, m) in readings {
+                    let stored: Option<f64> = existing
+                        .query_row(params![field, millis(m.time), m.sensor], |r| r.get(0))
+                        .optional()?;
+                    outcomes.push(match stored {
+                        Some(theta) if theta == m.theta => ReadingOutcome::Duplicate,
+                        Some(theta) => ReadingOutcome::Conflict(theta),
+                        None => {
+                            let n = insert.execute(params![
+                                field,
+                                millis(m.time),
+                                m.theta,
+                                m.sensor,
+                                m.true_theta,
+                                m.raw
+                            ])?;
+                            if n == 1 {
+                                ReadingOutcome::Stored
+                            } else {
+                                ReadingOutcome::NoField
+                            }
+                        }
+                    });
+                }
+            }
+            tx.commit()?;
+            Ok(outcomes)
         })
     }
 
@@ -583,5 +646,68 @@ impl Store {
             )?;
             Ok(())
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn reading(time: &str, theta: f64) -> Measurement {
+        Measurement {
+            time: time.parse().unwrap(),
+            theta,
+            sensor: None,
+            raw: None,
+            true_theta: None,
+        }
+    }
+
+    #[test]
+    fn a_batch_of_readings_is_stored_each_on_its_own() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let spec = FieldSpec {
+            actuator: crate::service::wire::Actuator::None,
+            simulation: None,
+            ..FieldSpec::demo()
+        };
+        let now = "2026-05-01T12:00:00Z".parse().unwrap();
+        let a = store.create_field(&spec, now).unwrap().id;
+        let b = store
+            .create_field(
+                &FieldSpec {
+                    name: "b".into(),
+                    ..spec.clone()
+                },
+                now,
+            )
+            .unwrap()
+            .id;
+        let t1 = "2026-05-01T10:00:00Z";
+        let t2 = "2026-05-01T11:00:00Z";
+        store.add_measurements(a, &[reading(t1, 0.2)]).unwrap();
+        let outcomes = store
+            .add_readings(&[
+                (a, reading(t1, 0.2)),  // resent
+                (a, reading(t1, 0.25)), // another θ at a stored time
+                (a, reading(t2, 0.21)),
+                (b, reading(t1, 0.3)),
+                (b + 10, reading(t1, 0.3)), // no such field
+            ])
+            .unwrap();
+        assert_eq!(
+            outcomes,
+            [
+                ReadingOutcome::Duplicate,
+                ReadingOutcome::Conflict(0.2),
+                ReadingOutcome::Stored,
+                ReadingOutcome::Stored,
+                ReadingOutcome::NoField,
+            ]
+        );
+        assert_eq!(store.count_measurements(a).unwrap(), 2);
+        assert_eq!(store.count_measurements(b).unwrap(), 1);
+        assert_eq!(store.count_measurements(b + 10).unwrap(), 0);
     }
 }

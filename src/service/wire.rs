@@ -897,6 +897,110 @@ pub struct Measurement {
     pub true_theta: Option<f64>,
 }
 
+/// A reading as it arrives (HTTP body or MQTT payload), its time already
+/// parsed: θ or a raw value, from the named sensor or the primary one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReadingIn<'a> {
+    pub time: DateTime<Utc>,
+    pub theta: Option<f64>,
+    pub raw: Option<f64>,
+    pub sensor: Option<&'a str>,
+}
+
+/// Why a reading was refused: a short reason (a metrics label) and the
+/// message naming the key and its range.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReadingError {
+    /// time, unknown-sensor, value, range, calibration.
+    pub reason: &'static str,
+    pub message: String,
+}
+
+/// The one check of an incoming reading, shared by `POST
+/// …/measurements` and MQTT: the time in the years 2000 … 2199 and at most
+/// `max_future_skew_s` after `now`; the sensor declared by `field` (none:
+/// the primary one); exactly one of θ and raw; raw in [`RAW_RANGE`] and
+/// calibrated by the sensor's calibration; θ in [0, 1]. `key` names the
+/// reading in messages (`measurements[3]`, an MQTT topic). The primary
+/// sensor's readings are stored without a sensor id.
+pub fn check_reading(
+    key: &str,
+    r: ReadingIn<'_>,
+    field: &Field,
+    now: DateTime<Utc>,
+    max_future_skew_s: f64,
+) -> Result<Measurement, ReadingError> {
+    let err = |reason, message| ReadingError { reason, message };
+    let skew = chrono::TimeDelta::milliseconds((max_future_skew_s * 1000.0) as i64);
+    if r.time > now + skew {
+        return Err(err(
+            "time",
+            format!(
+                "{key}.time = {} lies more than {max_future_skew_s} s in the future (now {})",
+                r.time.to_rfc3339(),
+                now.to_rfc3339()
+            ),
+        ));
+    }
+    check_time(&format!("{key}.time"), r.time).map_err(|m| err("time", m))?;
+    let sensors = field.spec.effective_sensors();
+    let (index, sensor) = match r.sensor {
+        None => (0, &sensors[0]),
+        Some(name) => match sensors.iter().enumerate().find(|(_, s)| s.id == name) {
+            Some(found) => found,
+            None => {
+                let known: Vec<&str> = sensors.iter().map(|s| s.id.as_str()).collect();
+                return Err(err(
+                    "unknown-sensor",
+                    format!(
+                        "{key}.sensor '{name}' is not a sensor of field {}; its sensors: {}",
+                        field.id,
+                        known.join(", ")
+                    ),
+                ));
+            }
+        },
+    };
+    let theta = match (r.theta, r.raw) {
+        (Some(_), Some(_)) => {
+            return Err(err(
+                "value",
+                format!("{key} gives theta and raw: give one (raw is calibrated to θ)"),
+            ));
+        }
+        (None, None) => return Err(err("value", format!("{key} needs theta or raw"))),
+        (Some(theta), None) => theta,
+        (None, Some(raw)) => {
+            check_range(&format!("{key}.raw"), raw, RAW_RANGE).map_err(|m| err("range", m))?;
+            let Some(calibration) = &sensor.calibration else {
+                return Err(err(
+                    "calibration",
+                    format!(
+                        "{key}.raw: sensor '{}' has no calibration; send theta",
+                        sensor.id
+                    ),
+                ));
+            };
+            calibration
+                .theta(raw)
+                .map_err(|e| err("range", format!("{key}: sensor '{}': {e}", sensor.id)))?
+        }
+    };
+    if !(theta.is_finite() && (0.0..=1.0).contains(&theta)) {
+        return Err(err(
+            "range",
+            format!("{key}.theta = {theta} must lie in [0, 1]"),
+        ));
+    }
+    Ok(Measurement {
+        time: r.time,
+        theta,
+        sensor: (index > 0).then(|| sensor.id.clone()),
+        raw: r.raw,
+        true_theta: None,
+    })
+}
+
 /// One measurement or a batch.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(untagged)]
