@@ -65,12 +65,21 @@ struct Outcome {
     weather: &'static str,
     schedule: Schedule,
     error: Option<IntegrationError>,
-    max_supply: f64,
 }
 
-/// Work limits well below the defaults, so that the runs that give up do so
-/// quickly; the mechanism is the same.
-const LIMITS: WorkLimits = WorkLimits {
+/// The two cases that still stop (ARCHITECTURE.md, "ponding"): a clay
+/// column wetted to h ≈ 0 by rain on top of 1e-7 m/s, where the Newton
+/// matrix of the cells at saturation is singular (the odd–even decoupling
+/// of the arithmetic face mean). Every other case must finish.
+fn known_to_stop(texture: Texture, weather: &str, s: Schedule) -> bool {
+    matches!(texture, Texture::Clay | Texture::SandyClay)
+        && weather == "rain"
+        && matches!(s, Schedule::Constant(u) if u == 1e-7)
+}
+
+/// Work limits for the known stops only, well below the defaults, so that
+/// they give up quickly; the mechanism is the same.
+const SHORT_LIMITS: WorkLimits = WorkLimits {
     step_attempts: 200,
     newton_iterations: 4_000,
 };
@@ -81,13 +90,15 @@ fn run(texture: Texture, name: &'static str, weather: &WeatherSeries, s: Schedul
         ..FieldSettings::default()
     })
     .expect("a texture is a valid soil");
-    field.set_work_limits(LIMITS);
+    let limits = if known_to_stop(texture, name, s) {
+        SHORT_LIMITS
+    } else {
+        WorkLimits::default()
+    };
+    field.set_work_limits(limits);
     let mut error = None;
-    let mut max_supply: f64 = 0.0;
     for k in 0..STEPS {
-        let f = forcing(weather, s, k);
-        max_supply = max_supply.max(f.irrigation + f.precipitation);
-        if let Err(e) = field.step(f) {
+        if let Err(e) = field.step(forcing(weather, s, k)) {
             error = Some(e);
             break;
         }
@@ -101,7 +112,7 @@ fn run(texture: Texture, name: &'static str, weather: &WeatherSeries, s: Schedul
     assert!(balance.runoff >= -1e-15, "runoff is booked as a loss");
     let stats = field.integrator_statistics();
     assert!(
-        stats.newton_iterations <= STEPS * (LIMITS.newton_iterations + 200),
+        stats.newton_iterations <= STEPS * (limits.newton_iterations + 200),
         "{texture} / {name} / {s:?}: {} Newton iterations exceed the limits",
         stats.newton_iterations
     );
@@ -110,59 +121,65 @@ fn run(texture: Texture, name: &'static str, weather: &WeatherSeries, s: Schedul
         weather: name,
         schedule: s,
         error,
-        max_supply,
     }
 }
 
+/// The matrix at the default work limits, one thread per texture (a few
+/// seconds on the test profile's opt-level).
 #[test]
-fn every_texture_and_schedule_finishes_or_names_where_it_stopped() {
+fn every_texture_and_schedule_finishes_conserving_water() {
     let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
     let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").unwrap();
-    let mut outcomes = Vec::new();
-    for texture in Texture::ALL {
-        for (name, weather) in [("dry", &dry), ("rain", &rain)] {
-            for s in Schedule::ALL {
-                outcomes.push(run(texture, name, weather, s));
-            }
-        }
-    }
+    let outcomes: Vec<Outcome> = std::thread::scope(|scope| {
+        let runs: Vec<_> = Texture::ALL
+            .into_iter()
+            .map(|texture| {
+                let (dry, rain) = (&dry, &rain);
+                scope.spawn(move || {
+                    let mut outcomes = Vec::new();
+                    for (name, weather) in [("dry", dry), ("rain", rain)] {
+                        for s in Schedule::ALL {
+                            outcomes.push(run(texture, name, weather, s));
+                        }
+                    }
+                    outcomes
+                })
+            })
+            .collect();
+        runs.into_iter()
+            .flat_map(|r| r.join().expect("a texture's runs panicked"))
+            .collect()
+    });
+    assert_eq!(outcomes.len(), 144);
     let mut stopped = Vec::new();
     for o in &outcomes {
-        let soil = o.texture.parameters();
-        // the coarse textures, and any run that cannot pond, must finish: a
-        // top cell at h ≤ 0 takes at least (Ks + K)/2 ≥ Ks/2 (MODEL.md §1)
-        let must_finish = soil.n >= 1.89 || o.max_supply < 0.5 * soil.saturated_conductivity;
-        match &o.error {
-            None => {}
-            Some(e) => {
-                assert!(
-                    !must_finish,
-                    "{} / {} / {:?} must finish: {e}",
-                    o.texture, o.weather, o.schedule
-                );
-                assert!(
-                    matches!(
-                        e.kind,
-                        FailureKind::WorkLimit(_) | FailureKind::StepSizeCollapse
-                    ),
-                    "{e}"
-                );
-                let (Some(step), Some(dt), Some(cell)) = (e.step, e.smallest_step, e.cell) else {
-                    panic!("the error must name step, smallest step and cell: {e:?}");
-                };
-                assert!(step < STEPS && dt > 0.0 && cell < 26, "{e:?}");
-                assert!(e.time >= step as f64 * STEP_SECONDS, "{e:?}");
-                let text = e.to_string();
-                assert!(text.contains(&format!("sampling step {step}")), "{text}");
-                assert!(text.contains(&format!("cell {cell}")), "{text}");
-                stopped.push(format!("{} / {} / {:?}", o.texture, o.weather, o.schedule));
-            }
-        }
+        let Some(e) = &o.error else { continue };
+        assert!(
+            known_to_stop(o.texture, o.weather, o.schedule),
+            "{} / {} / {:?} must finish: {e}",
+            o.texture,
+            o.weather,
+            o.schedule
+        );
+        // a stop is bounded and says where it happened
+        assert!(
+            matches!(
+                e.kind,
+                FailureKind::WorkLimit(_) | FailureKind::StepSizeCollapse
+            ),
+            "{e}"
+        );
+        let (Some(step), Some(dt), Some(cell)) = (e.step, e.smallest_step, e.cell) else {
+            panic!("the error must name step, smallest step and cell: {e:?}");
+        };
+        assert!(step < STEPS && dt > 0.0 && cell < 26, "{e:?}");
+        assert!(e.time >= step as f64 * STEP_SECONDS, "{e:?}");
+        let text = e.to_string();
+        assert!(text.contains(&format!("sampling step {step}")), "{text}");
+        assert!(text.contains(&format!("cell {cell}")), "{text}");
+        stopped.push(format!("{} / {} / {:?}", o.texture, o.weather, o.schedule));
     }
-    assert_eq!(outcomes.len(), 144);
-    // what still stops (ponding on the textures finer than sandy loam) is
-    // printed for the record; see ARCHITECTURE.md, "ponding"
-    eprintln!("{} of 144 runs stop at the work limit:", stopped.len());
+    eprintln!("{} of 144 runs stop:", stopped.len());
     for s in &stopped {
         eprintln!("  {s}");
     }
@@ -243,7 +260,7 @@ fn ill_posed_soils_are_refused_naming_the_parameter() {
 /// shipped, and finer textures, wetting, ponding and drying: over all 60
 /// steps and all cells, θ moves by at most 2e-4 when both tolerances are
 /// tightened 100×. (The whole matrix: `matrix_accuracy`, ignored; measured
-/// up to 6.5e-5.)
+/// up to 7.6e-5, clay.)
 #[test]
 fn theta_moves_less_than_2e_4_when_the_tolerances_tighten_100_fold() {
     let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
@@ -259,6 +276,12 @@ fn theta_moves_less_than_2e_4_when_the_tolerances_tighten_100_fold() {
         (Texture::SiltLoam, &rain, Schedule::RainStep),
         (Texture::ClayLoam, &dry, Schedule::Constant(1e-6)),
         (Texture::SandyClayLoam, &dry, Schedule::MaxForTwoSteps),
+        // the fine textures, ponded (Ks below the supply)
+        (Texture::Silt, &rain, Schedule::Constant(1e-6)),
+        (Texture::SiltyClayLoam, &dry, Schedule::MaxForTwoSteps),
+        (Texture::SandyClay, &dry, Schedule::Constant(1e-5)),
+        (Texture::SiltyClay, &rain, Schedule::RainStep),
+        (Texture::Clay, &dry, Schedule::Constant(1e-6)),
     ] {
         let (a, ea, ..) = trajectory(texture, weather, s, Default::default());
         let (b, eb, ..) = trajectory(texture, weather, s, tight);

@@ -233,9 +233,12 @@ const NEWTON_FRACTION: f64 = 0.02;
 const MAX_NEWTON_ITERATIONS: usize = 25;
 /// The fast path's Newton residuals [m³/m³ of stored water]: the last stage
 /// to round-off (it closes the water balance without projection), the inner
-/// stages far below the error tolerance (they only perturb the solution).
+/// stages to this fraction of the robust path's tolerance (they only perturb
+/// the solution: 8e-9 at the default tolerances; against a fixed 1e-10, 9 %
+/// fewer instructions on sand and sandy loam, and the same θ change when the
+/// tolerances tighten 100×, 1.9e-5 sand, 8.2e-6 sandy loam, 3.1e-5 loam).
 const NEWTON_TOLERANCE: f64 = 1e-13;
-const STAGE_TOLERANCE: f64 = 1e-10;
+const STAGE_FRACTION: f64 = 0.1;
 /// Moves between the sets per cell in one active-set stage solve.
 const MAX_SWITCHES: u8 = 3;
 /// Step attempts that go straight to the robust path after the fast path failed.
@@ -249,6 +252,11 @@ const PROJECTION_CAPACITY: f64 = 100.0;
 /// stall a semismooth Newton that converges with full steps.
 const WATCHDOG_STEPS: usize = 5;
 const WATCHDOG_GROWTH: f64 = 1e3;
+/// Levenberg–Marquardt's first damping, its largest, and its iterations
+/// (each one a residual evaluation) per stage solve.
+const LM_INITIAL_DAMPING: f64 = 1e-3;
+const LM_LARGEST_DAMPING: f64 = 1e10;
+const LM_ITERATIONS: usize = 60;
 /// Smallest step before giving up [s].
 const MIN_STEP: f64 = 1e-8;
 /// First step of the very first call [s].
@@ -295,8 +303,9 @@ pub struct Integrator {
 #[derive(Debug, Clone)]
 struct Workspace {
     eval: Evaluation,
-    /// Stored water at the start of the step.
+    /// Stored water at the start of the step, and the heads it is of.
     storage: Vec<f64>,
+    storage_heads: Vec<f64>,
     /// Cell rates and amount rates of every stage.
     stage_rates: [Vec<f64>; STAGES],
     stage_amount_rates: [[f64; AMOUNTS]; STAGES],
@@ -321,6 +330,12 @@ struct Workspace {
     switches: Vec<u8>,
     /// Scratch of the Thomas algorithm (the fast path).
     scratch: Vec<f64>,
+    /// Levenberg–Marquardt's JᵀJ (n×n), its damped factor, JᵀR and the
+    /// residual at the last accepted iterate.
+    normal: Vec<f64>,
+    factor: Vec<f64>,
+    gradient: Vec<f64>,
+    base_residual: Vec<f64>,
     /// Step attempts left that go straight to the robust path.
     robust_streak: usize,
     /// Kept only while tangents are propagated: diag(C + Ss) at the start of
@@ -341,6 +356,7 @@ impl Workspace {
         Workspace {
             eval: Evaluation::new(n),
             storage: z.clone(),
+            storage_heads: vec![f64::NAN; n],
             stage_rates: std::array::from_fn(|_| z.clone()),
             stage_amount_rates: [[0.0; AMOUNTS]; STAGES],
             known: z.clone(),
@@ -352,6 +368,10 @@ impl Workspace {
             side: vec![Side::BySign; n],
             solver: Tridiagonal::new(n),
             scratch: z.clone(),
+            normal: vec![0.0; n * n],
+            factor: vec![0.0; n * n],
+            gradient: z.clone(),
+            base_residual: z.clone(),
             start: z.clone(),
             saturated: vec![false; n],
             switches: vec![0; n],
@@ -581,8 +601,13 @@ impl Integrator {
         let n = self.column.cells();
         let soil = *self.column.soil();
         let ss = soil.specific_storage;
-        for i in 0..n {
-            self.work.storage[i] = soil.storage(heads[i]);
+        // the stored water at the step's start is the same for every attempt
+        // from these heads
+        if self.work.storage_heads != heads {
+            for i in 0..n {
+                self.work.storage[i] = soil.storage(heads[i]);
+            }
+            self.work.storage_heads.copy_from_slice(heads);
         }
         if self.work.keep_jacobians {
             for i in 0..n {
@@ -620,7 +645,7 @@ impl Integrator {
                     let tolerance = if stage + 1 == STAGES {
                         NEWTON_TOLERANCE
                     } else {
-                        STAGE_TOLERANCE
+                        STAGE_FRACTION * self.newton_tolerance()
                     };
                     self.solve_stage_fast(forcing, GAMMA * dt, tolerance)
                 }
@@ -631,11 +656,17 @@ impl Integrator {
                     let tolerance = self.newton_tolerance();
                     self.work.base.copy_from_slice(&self.work.trial);
                     self.work.start.copy_from_slice(&self.work.trial);
-                    self.solve_stage(forcing, GAMMA * dt, tolerance) || {
-                        let w = &mut self.work;
-                        w.trial.copy_from_slice(&w.start);
-                        self.solve_stage_active_set(forcing, GAMMA * dt, tolerance)
-                    }
+                    self.solve_stage(forcing, GAMMA * dt, tolerance)
+                        || {
+                            let w = &mut self.work;
+                            w.trial.copy_from_slice(&w.start);
+                            self.solve_stage_active_set(forcing, GAMMA * dt, tolerance)
+                        }
+                        || {
+                            let w = &mut self.work;
+                            w.trial.copy_from_slice(&w.start);
+                            self.solve_stage_least_squares(forcing, GAMMA * dt, tolerance)
+                        }
                 }
             };
             if !solved {
@@ -1015,6 +1046,128 @@ impl Integrator {
         true
     }
 
+    /// The robust path's last try at a stage: Levenberg–Marquardt on ½|R|²
+    /// in the coordinates of [`Coordinates`] (Moré 1978, Lecture Notes in
+    /// Mathematics 630, 105–116). Near saturation a run of cells whose
+    /// storage vanishes (dθ/dψ → 0) has a Newton matrix that is a centred
+    /// difference of K, singular for a run of odd length (the odd–even
+    /// decoupling of the arithmetic face mean): Newton's updates there are
+    /// huge in the null direction and its line search stalls. The damped
+    /// normal equations (JᵀJ + μ·diag(JᵀJ))·δ = JᵀR stay solvable and give
+    /// a descent direction for |R|² whatever the rank; μ falls after a step
+    /// that reduces |R|² and rises after one that does not. The solution is
+    /// that of the same residual, to the same tolerance.
+    fn solve_stage_least_squares(
+        &mut self,
+        forcing: &Forcing,
+        gamma_dt: f64,
+        tolerance: f64,
+    ) -> bool {
+        let n = self.column.cells();
+        let ss = self.column.soil().specific_storage;
+        let column = self.column;
+        let coordinates = Coordinates::new(self.column.soil());
+        let residual = |w: &mut Workspace| -> (f64, f64) {
+            let chain =
+                |_: usize, h: f64, st: &HydraulicState| coordinates.chain(h, st, Side::BySign);
+            column.evaluate_in(
+                &w.trial,
+                forcing,
+                &mut w.eval,
+                Derivatives::Included,
+                Some(&chain),
+            );
+            let (mut norm, mut squares) = (0.0f64, 0.0);
+            for i in 0..n {
+                let water = w.eval.states[i].water_content + ss * w.trial[i];
+                w.residual[i] = water - w.known[i] - gamma_dt * w.eval.storage[i];
+                norm = norm.max(w.residual[i].abs());
+                squares += w.residual[i] * w.residual[i];
+            }
+            if squares.is_finite() {
+                (norm, squares)
+            } else {
+                (f64::INFINITY, f64::INFINITY)
+            }
+        };
+        let w = &mut self.work;
+        let (mut norm, mut squares) = residual(w);
+        let mut mu = LM_INITIAL_DAMPING;
+        let mut iterations = 0;
+        while norm > tolerance {
+            if iterations >= LM_ITERATIONS || !norm.is_finite() {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            // JᵀJ and JᵀR of the tridiagonal J at the iterate
+            let normal = &mut w.normal;
+            normal.fill(0.0);
+            w.gradient.fill(0.0);
+            for i in 0..n {
+                let (_, dh) = coordinates.chain(w.trial[i], &w.eval.states[i], Side::BySign);
+                let row = [
+                    (i.wrapping_sub(1), -gamma_dt * w.eval.lower[i]),
+                    (
+                        i,
+                        (w.eval.states[i].capacity + ss) * dh - gamma_dt * w.eval.diagonal[i],
+                    ),
+                    (i + 1, -gamma_dt * w.eval.upper[i]),
+                ];
+                for &(j, a) in &row {
+                    if j >= n {
+                        continue;
+                    }
+                    w.gradient[j] += a * w.residual[i];
+                    for &(k, b) in &row {
+                        if k < n {
+                            normal[j * n + k] += a * b;
+                        }
+                    }
+                }
+            }
+            let largest = (0..n).map(|j| normal[j * n + j]).fold(0.0, f64::max);
+            if !(largest > 0.0 && largest.is_finite()) {
+                w.worst_cell = largest_entry(&w.residual);
+                return false;
+            }
+            w.base.copy_from_slice(&w.trial);
+            w.base_residual.copy_from_slice(&w.residual);
+            loop {
+                iterations += 1;
+                self.statistics.newton_iterations += 1;
+                let factor = &mut w.factor;
+                factor.copy_from_slice(&w.normal);
+                for j in 0..n {
+                    let d = w.normal[j * n + j].max(1e-12 * largest);
+                    factor[j * n + j] += mu * d;
+                }
+                let solved = cholesky_solve(factor, n, &w.gradient, &mut w.update);
+                if solved {
+                    for i in 0..n {
+                        w.trial[i] = match coordinates.coordinate(w.base[i]) {
+                            Some(u) => coordinates.head(u - w.update[i]),
+                            None => w.base[i] - w.update[i],
+                        };
+                    }
+                    let (next_norm, next_squares) = residual(w);
+                    if next_squares < squares {
+                        (norm, squares) = (next_norm, next_squares);
+                        mu = (mu / 3.0).max(1e-12);
+                        break;
+                    }
+                }
+                mu *= 4.0;
+                if mu > LM_LARGEST_DAMPING || iterations >= LM_ITERATIONS {
+                    w.trial.copy_from_slice(&w.base);
+                    w.residual.copy_from_slice(&w.base_residual);
+                    w.worst_cell = largest_entry(&w.residual);
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
     /// Newton's stopping residual, [`NEWTON_FRACTION`] of the error scale at saturation.
     fn newton_tolerance(&self) -> f64 {
         let soil = self.column.soil();
@@ -1230,8 +1383,15 @@ impl Coordinates {
         }
         let a = (-self.alpha * h).max(0.0);
         if a < 1e-12 {
-            // the limits at ψ → 0⁻: K = Ks·(1 + 2ψ + o(ψ)), h = o(ψ)
-            return (2.0 * self.saturated_conductivity, 0.0);
+            // dK/dh is floored there (see hydraulics): with Se = 1 − O(a^n),
+            // K = Ks·(1 − |ψ|)² + O(a^n), so dK/dψ = 2Ks·(1 − |ψ|)
+            let y = a.powf(self.exponent);
+            let dh = if a > 0.0 {
+                a / (y * self.alpha * self.exponent)
+            } else {
+                0.0
+            };
+            return (2.0 * self.saturated_conductivity * (1.0 - y), dh);
         }
         // h = −|ψ|^(1/(n−1))/α: dh/dψ = a^(2−n)/(α(n−1))
         let dh = a.powf(1.0 - self.exponent) / (self.alpha * self.exponent);
@@ -1274,6 +1434,45 @@ fn largest_entry(values: &[f64]) -> Option<usize> {
         }
     }
     best.map(|(i, _)| i)
+}
+
+/// Solves the symmetric positive definite system `matrix·x = rhs` (`matrix`
+/// n×n, row-major, overwritten by its Cholesky factor). Returns false if a
+/// pivot is not positive or the solution is not finite.
+fn cholesky_solve(matrix: &mut [f64], n: usize, rhs: &[f64], x: &mut [f64]) -> bool {
+    for j in 0..n {
+        let mut d = matrix[j * n + j];
+        for k in 0..j {
+            d -= matrix[j * n + k] * matrix[j * n + k];
+        }
+        if !(d > 0.0 && d.is_finite()) {
+            return false;
+        }
+        let d = d.sqrt();
+        matrix[j * n + j] = d;
+        for i in j + 1..n {
+            let mut v = matrix[i * n + j];
+            for k in 0..j {
+                v -= matrix[i * n + k] * matrix[j * n + k];
+            }
+            matrix[i * n + j] = v / d;
+        }
+    }
+    for i in 0..n {
+        let mut v = rhs[i];
+        for k in 0..i {
+            v -= matrix[i * n + k] * x[k];
+        }
+        x[i] = v / matrix[i * n + i];
+    }
+    for i in (0..n).rev() {
+        let mut v = x[i];
+        for k in i + 1..n {
+            v -= matrix[k * n + i] * x[k];
+        }
+        x[i] = v / matrix[i * n + i];
+    }
+    x.iter().all(|v| v.is_finite())
 }
 
 /// Solves the tridiagonal system with sub-diagonal `a(i)` (row i, column i−1),
