@@ -176,28 +176,6 @@ fn measurement_row(m: &Measurement, out: &mut String) {
     );
 }
 
-/// Why a setpoint is what it is, in words: the explanation stored with it,
-/// or (setpoints stored before explanations were) a short one rebuilt from
-/// its status, first-step prediction and flags.
-pub fn explanation(s: &Setpoint) -> String {
-    if !s.explanation.is_empty() {
-        return s.explanation.clone();
-    }
-    let mut parts = vec![format!("solver {}", s.status)];
-    if let (Some(theta), Some([low, up])) = (s.predicted_theta.first(), s.zone.first()) {
-        parts.push(format!(
-            "predicted θ {theta:.4} after one step, zone [{low:.4}, {up:.4}]"
-        ));
-    }
-    if !s.degraded.is_empty() {
-        parts.push(format!("degraded: {}", s.degraded.join(" ")));
-    }
-    if let Some(why) = &s.fallback_reason {
-        parts.push(format!("fallback: {why}"));
-    }
-    parts.join("; ")
-}
-
 fn setpoint_row(s: &Setpoint, out: &mut String) {
     let time = s.time.to_rfc3339();
     let rate = s.rate.to_string();
@@ -207,11 +185,11 @@ fn setpoint_row(s: &Setpoint, out: &mut String) {
         .as_ref()
         .map(|v| v.valve_minutes.to_string())
         .unwrap_or_default();
-    let why = explanation(s);
+    let why = &s.explanation;
     row(
         out,
         [
-            "setpoint", &time, "", "", &rate, &amount, &minutes, &s.status, &why, "", "", "",
+            "setpoint", &time, "", "", &rate, &amount, &minutes, &s.status, why, "", "", "",
         ],
     );
 }

@@ -561,7 +561,7 @@ impl Store {
         })?;
         Ok(bodies
             .iter()
-            .map(|b| serde_json::from_str(b))
+            .map(|b| setpoint_of(b))
             .collect::<Result<_, _>>()?)
     }
 
@@ -576,7 +576,7 @@ impl Store {
         })?;
         Ok(bodies
             .iter()
-            .map(|b| serde_json::from_str(b))
+            .map(|b| setpoint_of(b))
             .collect::<Result<_, _>>()?)
     }
 
@@ -649,9 +649,46 @@ impl Store {
     }
 }
 
+/// A stored setpoint; one stored before setpoints carried their
+/// explanation gets it here, from what it recorded (without the field's
+/// rate limit, so it cannot say that the limit bound).
+fn setpoint_of(body: &str) -> Result<Setpoint, serde_json::Error> {
+    let mut s: Setpoint = serde_json::from_str(body)?;
+    if s.explanation.is_empty() {
+        s.explanation = super::explain::explain(&s, f64::INFINITY);
+    }
+    Ok(s)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_setpoint_stored_before_explanations_is_read_with_one() {
+        let old = r#"{"field_id":1,"time":"2026-06-02T12:00:00Z","valid_from":"2026-06-02T12:00:00Z",
+            "valid_until":"2026-06-02T14:00:00Z","rate":0.0,"amount_mm":0.0,"plan":[0.0,0.0],
+            "predicted_theta":[0.21,0.2],"zone":[[0.18,0.23],[0.18,0.23]],"model":"richards",
+            "status":"converged","iterations":3,"solve_ms":5.0,"degraded":["stale-measurement"],
+            "bias":0.0}"#;
+        let s = setpoint_of(old).unwrap();
+        assert!(
+            s.explanation
+                .starts_with("Irrigate 0.00 mm this period; no irrigation needed"),
+            "{}",
+            s.explanation
+        );
+        assert!(
+            s.explanation.contains("the last reading is old"),
+            "{}",
+            s.explanation
+        );
+        // a stored explanation is kept as it is
+        let mut kept = s.clone();
+        kept.explanation = "as decided".into();
+        let body = serde_json::to_string(&kept).unwrap();
+        assert_eq!(setpoint_of(&body).unwrap().explanation, "as decided");
+    }
 
     fn reading(time: &str, theta: f64) -> Measurement {
         Measurement {
