@@ -81,6 +81,17 @@ pub struct AppState {
 }
 
 impl AppState {
+    /// Every field, read on the blocking pool; none when the store fails
+    /// (the background loops that call this try again at their next tick).
+    pub(crate) async fn all_fields(&self) -> Vec<Field> {
+        let engine = self.engine.clone();
+        tokio::task::spawn_blocking(move || engine.store.fields())
+            .await
+            .ok()
+            .and_then(Result::ok)
+            .unwrap_or_default()
+    }
+
     /// The notification of field `id`'s stored measurements (woken, with
     /// `notify_waiters`, after every commit of new ones).
     pub fn measured(&self, id: i64) -> Arc<tokio::sync::Notify> {
@@ -490,12 +501,7 @@ async fn forecast_loop(state: Arc<AppState>) {
     };
     let mut warned = false;
     loop {
-        let engine = state.engine.clone();
-        let fields = tokio::task::spawn_blocking(move || engine.store.fields())
-            .await
-            .ok()
-            .and_then(Result::ok)
-            .unwrap_or_default();
+        let fields = state.all_fields().await;
         let polled: Vec<Field> = fields
             .into_iter()
             .filter(|f| f.spec.forecast_source.is_some())

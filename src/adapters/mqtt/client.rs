@@ -376,13 +376,7 @@ async fn connected(state: &Arc<AppState>, mqtt: &Mqtt, subscribe: bool) {
             return;
         }
     }
-    let engine = state.engine.clone();
-    let fields = tokio::task::spawn_blocking(move || engine.store.fields())
-        .await
-        .ok()
-        .and_then(Result::ok)
-        .unwrap_or_default();
-    for field in fields {
+    for field in state.all_fields().await {
         let mut docs: Vec<(String, Vec<u8>)> = Vec::new();
         if mqtt.settings.discovery {
             for (topic, doc) in super::discovery(&mqtt.topics, field.id, &field.spec.name) {
