@@ -7,6 +7,8 @@ use std::process::{Child, Command, Stdio};
 
 use serde_json::Value;
 
+pub mod postgres;
+
 pub const TOKEN: &str = "test-token-0123456789";
 
 pub struct Daemon {
