@@ -17,5 +17,6 @@ pub mod service;
 pub mod sim;
 pub mod simulate;
 pub mod soil;
+pub mod store;
 pub mod surrogate;
 pub mod weather;

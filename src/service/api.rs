@@ -42,7 +42,16 @@ impl ApiError {
 
     /// A failure of the daemon, not of the request: logged with its detail
     /// (in the request's span), answered without it.
+    /// A lost database is no internal error: 503, try again later.
     pub(crate) fn internal(e: impl std::fmt::Display) -> ApiError {
+        let text = e.to_string();
+        if text.contains(crate::store::UNAVAILABLE) {
+            tracing::warn!(error = %text, "database unavailable");
+            return ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the database is unavailable; nothing was stored. Try again shortly",
+            );
+        }
         tracing::error!(error = %e, "internal error");
         ApiError::new(
             StatusCode::INTERNAL_SERVER_ERROR,
@@ -81,6 +90,11 @@ impl IntoResponse for ApiError {
             header::CONTENT_TYPE,
             HeaderValue::from_static("application/problem+json"),
         );
+        if self.status == StatusCode::SERVICE_UNAVAILABLE {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from_static("5"));
+        }
         if self.status == StatusCode::UNAUTHORIZED {
             response
                 .headers_mut()
@@ -92,7 +106,8 @@ impl IntoResponse for ApiError {
 
 pub(crate) type ApiResult<T> = Result<T, ApiError>;
 
-/// A storage failure: a conflict is the client's (409), the rest the daemon's.
+/// A storage failure: a conflict is the client's (409), a lost database
+/// 503, the rest the daemon's.
 fn store_error(e: super::store::StoreError) -> ApiError {
     match e {
         super::store::StoreError::Conflict(m) => ApiError::conflict(m),
@@ -834,10 +849,11 @@ async fn post_control(
     authorize(&state, &headers)?;
     let field = load_field(&state, &id).await?;
     let now = state.clock.now();
-    run_cycle(&state, field, now)
-        .await
-        .map(Json)
-        .map_err(ApiError::internal)
+    match run_cycle(&state, field, now, false).await {
+        Ok(Some(setpoint)) => Ok(Json(setpoint)),
+        Ok(None) => Err(ApiError::internal("an unscheduled cycle was refused")),
+        Err(e) => Err(ApiError::internal(e)),
+    }
 }
 
 /// The true state of a simulated field (`simulated: true` and the state), or

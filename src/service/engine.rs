@@ -16,7 +16,7 @@ use crate::weather::WeatherStep;
 use super::cycle::{
     BIAS_PERIOD, CycleInputs, EstimateView, assimilate, climatology, decide, observed_weather,
 };
-use super::store::{Sensors, Store, StoreError};
+use super::store::{CycleOutputs, CycleRun, Sensors, Store, StoreError};
 use super::wire::{Actuator, Field, Forecast, Setpoint};
 use crate::estimate::{
     Estimator, EstimatorSettings, EstimatorSnapshot, InitialGuess, Prior, Sensor as EstimatedSensor,
@@ -76,6 +76,10 @@ pub enum EngineError {
     #[error("simulated field {0}: {1}")]
     Plant(i64, String),
 }
+
+/// What [`Engine::estimate`] gives a cycle: the estimate it plans on, the
+/// estimator's flags and the record to store with the setpoint (JSON).
+pub type Estimated = (Option<EstimateView>, Vec<String>, Option<String>);
 
 impl Engine {
     pub fn new(store: Arc<Store>, models: Models) -> Engine {
@@ -396,12 +400,13 @@ impl Engine {
     /// scenario's for a simulated field, else the forecast nearest the
     /// time, else the climatology. A diverged estimator is reset to its
     /// prior and flagged `estimator-reset`. Stores the current and the
-    /// settled estimate; returns what the cycle uses.
+    /// settled estimate (JSON, for the cycle to store with its setpoint) and
+    /// returns what the cycle uses.
     pub fn estimate(
         &self,
         field: &Field,
         now: DateTime<Utc>,
-    ) -> Result<(Option<EstimateView>, Vec<String>), EngineError> {
+    ) -> Result<Estimated, EngineError> {
         let period = field.spec.control_period_s;
         let stored: Option<StoredEstimate> = self
             .store
@@ -428,7 +433,7 @@ impl Engine {
                     .into_iter()
                     .next();
                 let Some(first) = first else {
-                    return Ok((None, Vec::new()));
+                    return Ok((None, Vec::new(), None));
                 };
                 let est = self
                     .new_estimator(field, first.theta)
@@ -489,7 +494,6 @@ impl Engine {
             })),
         })
         .map_err(StoreError::from)?;
-        self.store.put_estimate(field.id, &body)?;
         Ok((
             Some(EstimateView {
                 heads: est.mean_heads(),
@@ -497,6 +501,7 @@ impl Engine {
                 depth: est.settings().depth,
             }),
             done.flags,
+            Some(body),
         ))
     }
 
@@ -519,12 +524,17 @@ impl Engine {
     }
 
     /// One control cycle: a simulated field's plant and weather service
-    /// first, then load → decide → store.
+    /// first, then load → decide → store (the setpoint, the state estimate
+    /// and, for a scheduled cycle, the run of its boundary, in one
+    /// transaction). Returns None when the store refused a scheduled cycle:
+    /// its boundary has run already, or this replica's lease of the field
+    /// ended; nothing of it is stored or published.
     pub fn control_cycle(
         &self,
         field: &Field,
         now: DateTime<Utc>,
-    ) -> Result<Setpoint, EngineError> {
+        run: Option<CycleRun<'_>>,
+    ) -> Result<Option<Setpoint>, EngineError> {
         let mut flags = Vec::new();
         if self.plant(field)?.is_some() {
             if let Err(e) = self.advance_plant(field, now) {
@@ -541,7 +551,7 @@ impl Engine {
             self.cycle_forecast(field, now, inputs.forecast.take())?;
         inputs.forecast = forecast;
         flags.extend(forecast_flag);
-        let (estimate, estimate_flags) = self.estimate(field, now)?;
+        let (estimate, estimate_flags, estimate_body) = self.estimate(field, now)?;
         flags.extend(estimate_flags);
         inputs.estimate = estimate;
         inputs.degraded = flags;
@@ -570,7 +580,11 @@ impl Engine {
         setpoint.surrogate = own_id;
         setpoint.forecast = Some(used);
         setpoint.explanation = super::explain::explain(&setpoint, field.spec.irrigation_max);
-        self.store.add_setpoint(&setpoint)?;
-        Ok(setpoint)
+        let stored = self.store.commit_cycle(&CycleOutputs {
+            setpoint: &setpoint,
+            estimate: estimate_body.as_deref(),
+            run,
+        })?;
+        Ok(stored.then_some(setpoint))
     }
 }

@@ -24,6 +24,12 @@ pub struct Metrics {
     pub mqtt_connected: IntGauge,
     pub mqtt_connections: IntCounter,
     pub mqtt_ingest_seconds: Histogram,
+    pub cycles_refused: IntCounter,
+    pub cycle_lateness_seconds: Histogram,
+    pub leases_held: IntGauge,
+    pub lease_age_seconds: prometheus::Gauge,
+    pub database_up: IntGauge,
+    pub replica: GaugeVec,
 }
 
 impl Metrics {
@@ -144,8 +150,49 @@ impl Metrics {
             ]),
         )
         .expect("valid metric");
+        let cycles_refused = IntCounter::new(
+            "rootzone_cycles_refused_total",
+            "Scheduled cycles not stored: their boundary had run (elsewhere) or the lease ended",
+        )
+        .expect("valid metric");
+        let cycle_lateness_seconds = Histogram::with_opts(
+            HistogramOpts::new(
+                "rootzone_cycle_lateness_seconds",
+                "Wall time from a period boundary to its stored cycle",
+            )
+            .buckets(vec![
+                0.01, 0.05, 0.1, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0,
+            ]),
+        )
+        .expect("valid metric");
+        let leases_held = IntGauge::new(
+            "rootzone_leases_held",
+            "Fields whose lease this replica holds (every field on SQLite)",
+        )
+        .expect("valid metric");
+        let lease_age_seconds = prometheus::Gauge::new(
+            "rootzone_lease_renewal_age_seconds",
+            "Wall time since this replica last renewed its leases (the lease lag)",
+        )
+        .expect("valid metric");
+        let database_up = IntGauge::new(
+            "rootzone_database_up",
+            "1 while the database answers, 0 while it is lost (cycles paused)",
+        )
+        .expect("valid metric");
+        let replica = GaugeVec::new(
+            Opts::new("rootzone_replica_info", "This replica: its id and storage"),
+            &["replica", "storage"],
+        )
+        .expect("valid metric");
         for c in [
-            Box::new(mqtt_received.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(cycles_refused.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(cycle_lateness_seconds.clone()),
+            Box::new(leases_held.clone()),
+            Box::new(lease_age_seconds.clone()),
+            Box::new(database_up.clone()),
+            Box::new(replica.clone()),
+            Box::new(mqtt_received.clone()),
             Box::new(mqtt_refused.clone()),
             Box::new(mqtt_duplicates.clone()),
             Box::new(mqtt_published.clone()),
@@ -182,6 +229,12 @@ impl Metrics {
             mqtt_connected,
             mqtt_connections,
             mqtt_ingest_seconds,
+            cycles_refused,
+            cycle_lateness_seconds,
+            leases_held,
+            lease_age_seconds,
+            database_up,
+            replica,
         }
     }
 

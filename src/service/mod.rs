@@ -11,7 +11,7 @@ pub mod explain;
 pub mod history;
 pub mod metrics;
 pub mod settings;
-pub mod store;
+pub use crate::store;
 pub mod training;
 pub mod valve;
 pub mod water;
@@ -64,6 +64,8 @@ pub struct AppState {
     pub clock: Clock,
     pub metrics: Metrics,
     pub token: String,
+    /// This replica's id (the holder named in leases and cycle runs).
+    pub replica: String,
     pub settings: Settings,
     /// The per-field surrogate training jobs.
     pub training: Arc<training::Jobs>,
@@ -129,6 +131,23 @@ fn read_token(dir: &Path) -> Result<String, ServeError> {
     write_private(&path, &token)
         .map_err(|e| ServeError::Io(format!("cannot write {}: {e}", path.display())))?;
     Ok(token)
+}
+
+/// A replica's id when none is set: host name, process id and a random
+/// suffix (a restarted process is a new replica).
+fn default_replica_id() -> String {
+    let host = std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "rootzone".into());
+    let host: String = host
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_'))
+        .take(40)
+        .collect();
+    let suffix = random_hex(3).unwrap_or_default();
+    format!("{host}-{}-{suffix}", std::process::id())
 }
 
 /// Logging through `tracing` to stderr: `RUST_LOG` when set, else the
@@ -200,7 +219,7 @@ impl App {
     pub async fn build(settings: Settings) -> Result<App, ServeError> {
         settings.validate()?;
         install_tls();
-        let store = Arc::new(store::Store::open(&settings.data_dir)?);
+        let store = Arc::new(store::Store::connect(&settings.storage_location()?)?);
         let token = match &settings.api_token {
             Some(t) => t.clone(),
             None => read_token(&settings.data_dir)?,
@@ -274,6 +293,7 @@ impl App {
             Some((client, eventloop)) => (Some(Arc::new(client)), Some(eventloop)),
             None => (None, None),
         };
+        let replica = default_replica_id();
         let state = Arc::new(AppState {
             engine: Arc::new(
                 Engine::new(store, models)
@@ -287,6 +307,7 @@ impl App {
             clock,
             metrics: Metrics::new(),
             token,
+            replica,
             permits: Arc::new(Semaphore::new(settings.limits.worker_threads)),
             settings,
             measured: Mutex::new(HashMap::new()),
@@ -382,7 +403,7 @@ pub(crate) async fn first_cycle(state: &Arc<AppState>, field: &Field) {
         }
         drop(permit);
     }
-    if let Err(e) = run_cycle(state, field.clone(), now).await {
+    if let Err(e) = run_cycle(state, field.clone(), now, false).await {
         tracing::warn!(field = field.id, error = %e, "first control cycle");
     }
 }
@@ -453,7 +474,7 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, 
                 _ = cancel.cancelled() => return,
             }
         }
-        if let Err(e) = run_cycle(&state, field, next).await {
+        if let Err(e) = run_cycle(&state, field, next, true).await {
             tracing::warn!(field = id, at = %next, error = %e, "control cycle failed");
         }
     }
@@ -565,11 +586,16 @@ async fn plant_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken) {
 /// Runs one control cycle on the blocking pool (in a span naming the field,
 /// model, status, iterations and solve time), records it in the metrics and
 /// publishes the setpoint.
+///
+/// A scheduled cycle (`scheduled`: `at` is a period boundary) runs once per
+/// (field, boundary) across every replica: Ok(None) when the store refused
+/// it (run already, or the lease ended).
 pub(crate) async fn run_cycle(
     state: &Arc<AppState>,
     field: Field,
     at: DateTime<Utc>,
-) -> Result<Setpoint, String> {
+    scheduled: bool,
+) -> Result<Option<Setpoint>, String> {
     use tracing::Instrument;
     let span = tracing::info_span!(
         "cycle",
@@ -581,7 +607,7 @@ pub(crate) async fn run_cycle(
         solve_ms = tracing::field::Empty,
         amount_mm = tracing::field::Empty,
     );
-    run_cycle_in(state, field, at, span.clone())
+    run_cycle_in(state, field, at, scheduled, span.clone())
         .instrument(span)
         .await
 }
@@ -590,8 +616,9 @@ async fn run_cycle_in(
     state: &Arc<AppState>,
     field: Field,
     at: DateTime<Utc>,
+    scheduled: bool,
     span: tracing::Span,
-) -> Result<Setpoint, String> {
+) -> Result<Option<Setpoint>, String> {
     let _permit = state
         .permits
         .clone()
@@ -600,8 +627,23 @@ async fn run_cycle_in(
         .map_err(|e| e.to_string())?;
     let engine = state.engine.clone();
     let f = field.clone();
-    let setpoint = match tokio::task::spawn_blocking(move || engine.control_cycle(&f, at)).await {
-        Ok(result) => result.map_err(|e| e.to_string())?,
+    let replica = state.replica.clone();
+    let decided = tokio::task::spawn_blocking(move || {
+        let run = scheduled.then_some(store::CycleRun {
+            boundary: at,
+            replica: &replica,
+        });
+        engine.control_cycle(&f, at, run)
+    })
+    .await;
+    let setpoint = match decided {
+        Ok(Ok(Some(setpoint))) => setpoint,
+        Ok(Ok(None)) => {
+            tracing::info!("this boundary has run already (or the lease ended): not published");
+            state.metrics.cycles_refused.inc();
+            return Ok(None);
+        }
+        Ok(Err(e)) => return Err(e.to_string()),
         Err(e) => {
             // a panic's text stays in the log
             tracing::error!(error = %e, "control cycle panicked");
@@ -672,7 +714,7 @@ async fn run_cycle_in(
             .instrument(tracing::Span::current()),
         );
     }
-    Ok(setpoint)
+    Ok(Some(setpoint))
 }
 
 /// Resolves on SIGINT or SIGTERM.

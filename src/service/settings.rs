@@ -57,6 +57,7 @@ pub const ENV_KEYS: &[&str] = &[
     "mqtt.max_payload_bytes",
     "mqtt.queue",
     "mqtt.batch_max",
+    "storage.url",
 ];
 
 /// The environment variable of a settings key.
@@ -94,8 +95,33 @@ pub struct Settings {
     /// `mqtt.url` is set.
     #[serde(default)]
     pub mqtt: crate::adapters::mqtt::MqttSettings,
+    /// Where the data lives (`ROOTZONE_STORAGE__URL`); unset: the SQLite
+    /// file in `data_dir`.
+    #[serde(default)]
+    pub storage: StorageSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
+}
+
+/// `[storage]`: the database.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StorageSettings {
+    /// `postgres://user:password@host:port/database` for a PostgreSQL
+    /// server (several replicas may share it), or `sqlite:<folder>`; unset:
+    /// `sqlite:` + `data_dir`.
+    pub url: Option<String>,
+}
+
+impl Settings {
+    /// The database these settings name.
+    pub fn storage_location(&self) -> Result<crate::store::Location, SettingsError> {
+        match &self.storage.url {
+            None => Ok(crate::store::Location::Sqlite(self.data_dir.clone())),
+            Some(url) => crate::store::Location::parse(url)
+                .map_err(|e| SettingsError(format!("storage.url: {e}"))),
+        }
+    }
 }
 
 /// The clock all of the daemon runs on.
@@ -239,6 +265,7 @@ impl Default for Settings {
             training: Default::default(),
             forecasts: Default::default(),
             mqtt: Default::default(),
+            storage: Default::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -307,6 +334,7 @@ impl Settings {
         self.training.validate().map_err(SettingsError)?;
         self.forecasts.validate().map_err(SettingsError)?;
         self.mqtt.validate().map_err(SettingsError)?;
+        self.storage_location()?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",

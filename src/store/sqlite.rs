@@ -1,14 +1,15 @@
-//! Durable storage: SQLite (bundled) in WAL mode, schema migrations versioned
-//! in the code (`PRAGMA user_version`). Every write is its own transaction,
-//! committed before the caller acknowledges it.
+//! The embedded backend: SQLite (bundled) in WAL mode, schema migrations
+//! versioned in the code (`PRAGMA user_version`). Every write is its own
+//! transaction, committed before the caller acknowledges it.
 
 use std::path::Path;
 use std::sync::Mutex;
 
-use chrono::{DateTime, TimeZone, Utc};
+use chrono::{DateTime, Utc};
 use rusqlite::{Connection, OptionalExtension, params};
 
-use super::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
+use super::{CycleOutputs, ReadingOutcome, Sensors, StoreError, millis, setpoint_of, time};
+use crate::service::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
 
 /// The schema, one migration per entry; entry i brings the database to
 /// version i + 1.
@@ -61,21 +62,17 @@ const MIGRATIONS: &[&str] = &[
     // a polled forecast source's state (its last good forecast, validators,
     // backoff), shared by the fields at its location
     "CREATE TABLE forecast_sources (key TEXT PRIMARY KEY, body TEXT NOT NULL);",
+    // each scheduled cycle (field, period boundary) runs once
+    "CREATE TABLE cycle_runs (
+         field_id INTEGER NOT NULL REFERENCES fields(id) ON DELETE CASCADE,
+         boundary INTEGER NOT NULL,
+         replica TEXT NOT NULL,
+         done_at INTEGER NOT NULL,
+         PRIMARY KEY (field_id, boundary));",
 ];
 
-/// A storage operation failed.
-#[derive(Debug, thiserror::Error)]
-pub enum StoreError {
-    #[error("database: {0}")]
-    Sql(#[from] rusqlite::Error),
-    #[error("stored JSON: {0}")]
-    Json(#[from] serde_json::Error),
-    #[error("{0}")]
-    Io(String),
-    /// The write contradicts what is stored (the message names both).
-    #[error("{0}")]
-    Conflict(String),
-}
+/// The schema version this binary brings a database to.
+pub(super) const VERSION: usize = MIGRATIONS.len();
 
 /// A unique-constraint violation as a conflict naming `what`.
 fn conflict(e: rusqlite::Error, what: impl FnOnce() -> String) -> StoreError {
@@ -85,12 +82,12 @@ fn conflict(e: rusqlite::Error, what: impl FnOnce() -> String) -> StoreError {
         {
             StoreError::Conflict(what())
         }
-        e => StoreError::Sql(e),
+        e => e.into(),
     }
 }
 
-/// The database.
-pub struct Store {
+/// The database file.
+pub(super) struct Sqlite {
     conn: Mutex<Connection>,
 }
 
@@ -139,15 +136,6 @@ fn private(_dir: &Path, _file: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
-/// Which sensors' measurements a query returns.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Sensors {
-    All,
-    /// The field's first sensor (the one the surrogate controllers read),
-    /// stored with no sensor id.
-    Primary,
-}
-
 fn measurement_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Measurement> {
     Ok(Measurement {
         time: time(r.get(0)?),
@@ -158,31 +146,11 @@ fn measurement_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Measurement> {
     })
 }
 
-fn millis(t: DateTime<Utc>) -> i64 {
-    t.timestamp_millis()
-}
-
-fn time(ms: i64) -> DateTime<Utc> {
-    Utc.timestamp_millis_opt(ms).single().unwrap_or_default()
-}
-
-/// What became of one reading of [`Store::add_readings`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ReadingOutcome {
-    Stored,
-    /// Already stored with the same θ.
-    Duplicate,
-    /// Already stored with this other θ: refused.
-    Conflict(f64),
-    /// The field is gone: refused.
-    NoField,
-}
-
-impl Store {
+impl Sqlite {
     /// Opens (creating) `dir/rootzone.sqlite3` and migrates it.
     /// The folder is made private (0700) when the daemon creates it or it
     /// holds only the daemon's files, and the database file is 0600.
-    pub fn open(dir: &Path) -> Result<Store, StoreError> {
+    pub(super) fn open(dir: &Path) -> Result<Sqlite, StoreError> {
         std::fs::create_dir_all(dir)
             .map_err(|e| StoreError::Io(format!("cannot create {}: {e}", dir.display())))?;
         let file = dir.join("rootzone.sqlite3");
@@ -196,13 +164,20 @@ impl Store {
         conn.pragma_update(None, "foreign_keys", "ON")?;
         conn.busy_timeout(std::time::Duration::from_secs(5))?;
         let version: i64 = conn.pragma_query_value(None, "user_version", |r| r.get(0))?;
+        if version > VERSION as i64 {
+            return Err(StoreError::Schema(format!(
+                "{}: the database's schema is version {version}, newer than this binary's \
+                 version {VERSION}; run the rootzone release that wrote it (or a newer one)",
+                file.display()
+            )));
+        }
         for (i, sql) in MIGRATIONS.iter().enumerate().skip(version.max(0) as usize) {
             let tx = conn.unchecked_transaction()?;
             tx.execute_batch(sql)?;
             tx.pragma_update(None, "user_version", (i + 1) as i64)?;
             tx.commit()?;
         }
-        Ok(Store {
+        Ok(Sqlite {
             conn: Mutex::new(conn),
         })
     }
@@ -215,7 +190,11 @@ impl Store {
         f(&mut conn)
     }
 
-    pub fn meta(&self, key: &str) -> Result<Option<String>, StoreError> {
+    pub(super) fn ping(&self) -> Result<(), StoreError> {
+        self.with(|c| Ok(c.query_row("SELECT 1", [], |_| Ok(()))?))
+    }
+
+    pub(super) fn meta(&self, key: &str) -> Result<Option<String>, StoreError> {
         self.with(|c| {
             Ok(
                 c.query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0))
@@ -224,7 +203,7 @@ impl Store {
         })
     }
 
-    pub fn set_meta(&self, key: &str, value: &str) -> Result<(), StoreError> {
+    pub(super) fn set_meta(&self, key: &str, value: &str) -> Result<(), StoreError> {
         self.with(|c| {
             c.execute(
                 "INSERT INTO meta(key, value) VALUES (?1, ?2)
@@ -235,7 +214,11 @@ impl Store {
         })
     }
 
-    pub fn create_field(&self, spec: &FieldSpec, now: DateTime<Utc>) -> Result<Field, StoreError> {
+    pub(super) fn create_field(
+        &self,
+        spec: &FieldSpec,
+        now: DateTime<Utc>,
+    ) -> Result<Field, StoreError> {
         let body = serde_json::to_string(spec)?;
         self.with(|c| {
             c.execute(
@@ -251,7 +234,7 @@ impl Store {
         })
     }
 
-    pub fn fields(&self) -> Result<Vec<Field>, StoreError> {
+    pub(super) fn fields(&self) -> Result<Vec<Field>, StoreError> {
         self.with(|c| {
             let mut stmt = c.prepare("SELECT id, created_at, spec FROM fields ORDER BY id")?;
             let rows = stmt.query_map([], |r| {
@@ -274,7 +257,7 @@ impl Store {
         })
     }
 
-    pub fn field(&self, id: i64) -> Result<Option<Field>, StoreError> {
+    pub(super) fn field(&self, id: i64) -> Result<Option<Field>, StoreError> {
         let row = self.with(|c| {
             Ok(c.query_row(
                 "SELECT created_at, spec FROM fields WHERE id = ?1",
@@ -293,7 +276,7 @@ impl Store {
         }
     }
 
-    pub fn update_field(&self, id: i64, spec: &FieldSpec) -> Result<bool, StoreError> {
+    pub(super) fn update_field(&self, id: i64, spec: &FieldSpec) -> Result<bool, StoreError> {
         let body = serde_json::to_string(spec)?;
         self.with(|c| {
             Ok(c.execute(
@@ -306,7 +289,7 @@ impl Store {
     }
 
     /// Deletes a field with all its data.
-    pub fn delete_field(&self, id: i64) -> Result<bool, StoreError> {
+    pub(super) fn delete_field(&self, id: i64) -> Result<bool, StoreError> {
         self.with(|c| Ok(c.execute("DELETE FROM fields WHERE id = ?1", [id])? == 1))
     }
 
@@ -315,7 +298,11 @@ impl Store {
     /// same θ is skipped (a client resending after a lost acknowledgement);
     /// with another θ the whole batch is refused with a [`StoreError::Conflict`]
     /// naming both values. Returns how many were new.
-    pub fn add_measurements(&self, field: i64, batch: &[Measurement]) -> Result<usize, StoreError> {
+    pub(super) fn add_measurements(
+        &self,
+        field: i64,
+        batch: &[Measurement],
+    ) -> Result<usize, StoreError> {
         self.with(|c| {
             let tx = c.transaction()?;
             let mut new = 0;
@@ -366,7 +353,7 @@ impl Store {
     /// already has with the same θ is a duplicate, with another θ a
     /// conflict, and one of a field that is gone is refused; none of these
     /// stops the others. Returns one outcome per reading, in order.
-    pub fn add_readings(
+    pub(super) fn add_readings(
         &self,
         readings: &[(i64, Measurement)],
     ) -> Result<Vec<ReadingOutcome>, StoreError> {
@@ -414,7 +401,7 @@ impl Store {
 
     /// Measurements in [from, to], oldest first, at most `limit`; of every
     /// sensor, or of the primary one only (stored with no sensor id).
-    pub fn measurements(
+    pub(super) fn measurements(
         &self,
         field: i64,
         from: Option<DateTime<Utc>>,
@@ -450,7 +437,7 @@ impl Store {
     }
 
     /// The primary sensor's latest measurement at or before `at`.
-    pub fn measurement_before(
+    pub(super) fn measurement_before(
         &self,
         field: i64,
         at: DateTime<Utc>,
@@ -467,7 +454,7 @@ impl Store {
         })
     }
 
-    pub fn count_measurements(&self, field: i64) -> Result<u64, StoreError> {
+    pub(super) fn count_measurements(&self, field: i64) -> Result<u64, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
                 "SELECT COUNT(*) FROM measurements WHERE field_id = ?1",
@@ -477,7 +464,7 @@ impl Store {
         })
     }
 
-    pub fn put_forecast(&self, field: i64, forecast: &Forecast) -> Result<(), StoreError> {
+    pub(super) fn put_forecast(&self, field: i64, forecast: &Forecast) -> Result<(), StoreError> {
         let body = serde_json::to_string(forecast)?;
         self.with(|c| {
             c.execute(
@@ -489,7 +476,7 @@ impl Store {
     }
 
     /// The forecast put last.
-    pub fn latest_forecast(&self, field: i64) -> Result<Option<Forecast>, StoreError> {
+    pub(super) fn latest_forecast(&self, field: i64) -> Result<Option<Forecast>, StoreError> {
         let body: Option<String> = self.with(|c| {
             Ok(c.query_row(
                 "SELECT body FROM forecasts WHERE field_id = ?1 ORDER BY id DESC LIMIT 1",
@@ -503,7 +490,7 @@ impl Store {
 
     /// The forecasts issued at or after `from`, oldest first; at most the
     /// newest `limit`.
-    pub fn forecasts_since(
+    pub(super) fn forecasts_since(
         &self,
         field: i64,
         from: DateTime<Utc>,
@@ -524,19 +511,8 @@ impl Store {
             .collect::<Result<_, _>>()?)
     }
 
-    pub fn add_setpoint(&self, setpoint: &Setpoint) -> Result<(), StoreError> {
-        let body = serde_json::to_string(setpoint)?;
-        self.with(|c| {
-            c.execute(
-                "INSERT INTO setpoints(field_id, time, body) VALUES (?1, ?2, ?3)",
-                params![setpoint.field_id, millis(setpoint.time), body],
-            )?;
-            Ok(())
-        })
-    }
-
     /// Setpoints in [from, to], oldest first, at most `limit`.
-    pub fn setpoints(
+    pub(super) fn setpoints(
         &self,
         field: i64,
         from: Option<DateTime<Utc>>,
@@ -566,7 +542,11 @@ impl Store {
     }
 
     /// The latest `n` setpoints, newest first.
-    pub fn recent_setpoints(&self, field: i64, n: usize) -> Result<Vec<Setpoint>, StoreError> {
+    pub(super) fn recent_setpoints(
+        &self,
+        field: i64,
+        n: usize,
+    ) -> Result<Vec<Setpoint>, StoreError> {
         let bodies: Vec<String> = self.with(|c| {
             let mut stmt = c.prepare_cached(
                 "SELECT body FROM setpoints WHERE field_id = ?1 ORDER BY time DESC, id DESC LIMIT ?2",
@@ -580,7 +560,7 @@ impl Store {
             .collect::<Result<_, _>>()?)
     }
 
-    pub fn simulation(&self, field: i64) -> Result<Option<String>, StoreError> {
+    pub(super) fn simulation(&self, field: i64) -> Result<Option<String>, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
                 "SELECT body FROM simulations WHERE field_id = ?1",
@@ -591,7 +571,7 @@ impl Store {
         })
     }
 
-    pub fn put_simulation(&self, field: i64, body: &str) -> Result<(), StoreError> {
+    pub(super) fn put_simulation(&self, field: i64, body: &str) -> Result<(), StoreError> {
         self.with(|c| {
             c.execute(
                 "INSERT INTO simulations(field_id, body) VALUES (?1, ?2)
@@ -602,8 +582,62 @@ impl Store {
         })
     }
 
+    /// Writes a cycle's outputs in one transaction: the run of its boundary
+    /// (refused, and nothing written, when that boundary has run), the
+    /// state estimate and the setpoint. Returns false when refused.
+    pub(super) fn commit_cycle(&self, out: &CycleOutputs<'_>) -> Result<bool, StoreError> {
+        let body = serde_json::to_string(out.setpoint)?;
+        let field = out.setpoint.field_id;
+        self.with(|c| {
+            let tx = c.transaction()?;
+            if let Some(run) = &out.run {
+                let n = tx.execute(
+                    "INSERT OR IGNORE INTO cycle_runs(field_id, boundary, replica, done_at)
+                     VALUES (?1, ?2, ?3, ?4)",
+                    params![field, millis(run.boundary), run.replica, millis(Utc::now())],
+                )?;
+                if n == 0 {
+                    return Ok(false);
+                }
+            }
+            if let Some(estimate) = out.estimate {
+                tx.execute(
+                    "INSERT INTO estimates(field_id, body) VALUES (?1, ?2)
+                     ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
+                    params![field, estimate],
+                )?;
+            }
+            tx.execute(
+                "INSERT INTO setpoints(field_id, time, body) VALUES (?1, ?2, ?3)",
+                params![field, millis(out.setpoint.time), body],
+            )?;
+            tx.commit()?;
+            Ok(true)
+        })
+    }
+
+    /// The boundaries of field `field`'s scheduled cycles that have run, in
+    /// [from, to], oldest first.
+    pub(super) fn cycle_runs(
+        &self,
+        field: i64,
+        from: DateTime<Utc>,
+        to: DateTime<Utc>,
+    ) -> Result<Vec<DateTime<Utc>>, StoreError> {
+        self.with(|c| {
+            let mut stmt = c.prepare_cached(
+                "SELECT boundary FROM cycle_runs WHERE field_id = ?1 AND boundary >= ?2
+                 AND boundary <= ?3 ORDER BY boundary",
+            )?;
+            let rows = stmt.query_map(params![field, millis(from), millis(to)], |r| {
+                r.get::<_, i64>(0)
+            })?;
+            Ok(rows.map(|r| r.map(time)).collect::<Result<Vec<_>, _>>()?)
+        })
+    }
+
     /// A field's stored state estimate (JSON).
-    pub fn estimate(&self, field: i64) -> Result<Option<String>, StoreError> {
+    pub(super) fn estimate(&self, field: i64) -> Result<Option<String>, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
                 "SELECT body FROM estimates WHERE field_id = ?1",
@@ -614,7 +648,7 @@ impl Store {
         })
     }
 
-    pub fn put_estimate(&self, field: i64, body: &str) -> Result<(), StoreError> {
+    pub(super) fn put_estimate(&self, field: i64, body: &str) -> Result<(), StoreError> {
         self.with(|c| {
             c.execute(
                 "INSERT INTO estimates(field_id, body) VALUES (?1, ?2)
@@ -626,7 +660,7 @@ impl Store {
     }
 
     /// A polled forecast source's state (JSON), by its key.
-    pub fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
+    pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
                 "SELECT body FROM forecast_sources WHERE key = ?1",
@@ -637,7 +671,7 @@ impl Store {
         })
     }
 
-    pub fn put_forecast_source(&self, key: &str, body: &str) -> Result<(), StoreError> {
+    pub(super) fn put_forecast_source(&self, key: &str, body: &str) -> Result<(), StoreError> {
         self.with(|c| {
             c.execute(
                 "INSERT INTO forecast_sources(key, body) VALUES (?1, ?2)
@@ -646,105 +680,5 @@ impl Store {
             )?;
             Ok(())
         })
-    }
-}
-
-/// A stored setpoint; one stored before setpoints carried their
-/// explanation gets it here, from what it recorded (without the field's
-/// rate limit, so it cannot say that the limit bound).
-fn setpoint_of(body: &str) -> Result<Setpoint, serde_json::Error> {
-    let mut s: Setpoint = serde_json::from_str(body)?;
-    if s.explanation.is_empty() {
-        s.explanation = super::explain::explain(&s, f64::INFINITY);
-    }
-    Ok(s)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_setpoint_stored_before_explanations_is_read_with_one() {
-        let old = r#"{"field_id":1,"time":"2026-06-02T12:00:00Z","valid_from":"2026-06-02T12:00:00Z",
-            "valid_until":"2026-06-02T14:00:00Z","rate":0.0,"amount_mm":0.0,"plan":[0.0,0.0],
-            "predicted_theta":[0.21,0.2],"zone":[[0.18,0.23],[0.18,0.23]],"model":"richards",
-            "status":"converged","iterations":3,"solve_ms":5.0,"degraded":["stale-measurement"],
-            "bias":0.0}"#;
-        let s = setpoint_of(old).unwrap();
-        assert!(
-            s.explanation
-                .starts_with("Irrigate 0.00 mm this period; no irrigation needed"),
-            "{}",
-            s.explanation
-        );
-        assert!(
-            s.explanation.contains("the last reading is old"),
-            "{}",
-            s.explanation
-        );
-        // a stored explanation is kept as it is
-        let mut kept = s.clone();
-        kept.explanation = "as decided".into();
-        let body = serde_json::to_string(&kept).unwrap();
-        assert_eq!(setpoint_of(&body).unwrap().explanation, "as decided");
-    }
-
-    fn reading(time: &str, theta: f64) -> Measurement {
-        Measurement {
-            time: time.parse().unwrap(),
-            theta,
-            sensor: None,
-            raw: None,
-            true_theta: None,
-        }
-    }
-
-    #[test]
-    fn a_batch_of_readings_is_stored_each_on_its_own() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
-        let spec = FieldSpec {
-            actuator: crate::service::wire::Actuator::None,
-            simulation: None,
-            ..FieldSpec::demo()
-        };
-        let now = "2026-05-01T12:00:00Z".parse().unwrap();
-        let a = store.create_field(&spec, now).unwrap().id;
-        let b = store
-            .create_field(
-                &FieldSpec {
-                    name: "b".into(),
-                    ..spec.clone()
-                },
-                now,
-            )
-            .unwrap()
-            .id;
-        let t1 = "2026-05-01T10:00:00Z";
-        let t2 = "2026-05-01T11:00:00Z";
-        store.add_measurements(a, &[reading(t1, 0.2)]).unwrap();
-        let outcomes = store
-            .add_readings(&[
-                (a, reading(t1, 0.2)),  // resent
-                (a, reading(t1, 0.25)), // another θ at a stored time
-                (a, reading(t2, 0.21)),
-                (b, reading(t1, 0.3)),
-                (b + 10, reading(t1, 0.3)), // no such field
-            ])
-            .unwrap();
-        assert_eq!(
-            outcomes,
-            [
-                ReadingOutcome::Duplicate,
-                ReadingOutcome::Conflict(0.2),
-                ReadingOutcome::Stored,
-                ReadingOutcome::Stored,
-                ReadingOutcome::NoField,
-            ]
-        );
-        assert_eq!(store.count_measurements(a).unwrap(), 2);
-        assert_eq!(store.count_measurements(b).unwrap(), 1);
-        assert_eq!(store.count_measurements(b + 10).unwrap(), 0);
     }
 }
