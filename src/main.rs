@@ -153,6 +153,17 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// Copy every table of one store into another, empty one (for example
+    /// from the embedded SQLite file to a PostgreSQL server).
+    Migrate {
+        /// The store to read: sqlite:<data folder> or postgres://user@host/db.
+        #[arg(long)]
+        from: String,
+        /// The store to fill (migrated to this binary's schema first; it must
+        /// hold no fields): sqlite:<folder> or postgres://user@host/db.
+        #[arg(long)]
+        to: String,
+    },
     /// Run the controller daemon: HTTP API, control loop, simulated fields.
     #[command(after_help = SERVE_DEFAULTS)]
     Serve {
@@ -298,6 +309,7 @@ fn main() -> ExitCode {
             trace,
         }),
         Command::Serve { config } => serve(config),
+        Command::Migrate { from, to } => migrate(&from, &to),
         Command::FieldSim { controller, config } => field_sim(controller, config),
     };
     match result {
@@ -307,6 +319,31 @@ fn main() -> ExitCode {
             ExitCode::from(BAD_INPUT)
         }
     }
+}
+
+/// `rootzone migrate`: opens both stores (the target is created and
+/// migrated), copies, reports the rows per table.
+fn migrate(from: &str, to: &str) -> anyhow::Result<()> {
+    use rootzone::store::{Location, Store, redact};
+    let source = Location::parse(from).map_err(|e| anyhow::anyhow!("--from: {e}"))?;
+    let target = Location::parse(to).map_err(|e| anyhow::anyhow!("--to: {e}"))?;
+    if source == target {
+        anyhow::bail!("--from and --to name the same store");
+    }
+    if let Location::Sqlite(dir) = &source
+        && !dir.join("rootzone.sqlite3").is_file()
+    {
+        anyhow::bail!("--from: {}: no rootzone.sqlite3 there", dir.display());
+    }
+    let source =
+        Store::connect(&source).map_err(|e| anyhow::anyhow!("--from {}: {e}", redact(from)))?;
+    let target =
+        Store::connect(&target).map_err(|e| anyhow::anyhow!("--to {}: {e}", redact(to)))?;
+    let report = source
+        .copy_into(&target)
+        .map_err(|e| anyhow::anyhow!("{} → {}: {e}", redact(from), redact(to)))?;
+    println!("copied {} → {}: {report}", redact(from), redact(to));
+    Ok(())
 }
 
 /// `--window-noise`: a fraction of the range in [0, 1].

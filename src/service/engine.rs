@@ -402,11 +402,7 @@ impl Engine {
     /// prior and flagged `estimator-reset`. Stores the current and the
     /// settled estimate (JSON, for the cycle to store with its setpoint) and
     /// returns what the cycle uses.
-    pub fn estimate(
-        &self,
-        field: &Field,
-        now: DateTime<Utc>,
-    ) -> Result<Estimated, EngineError> {
+    pub fn estimate(&self, field: &Field, now: DateTime<Utc>) -> Result<Estimated, EngineError> {
         let period = field.spec.control_period_s;
         let stored: Option<StoredEstimate> = self
             .store

@@ -13,8 +13,11 @@
 //! pool, the CLI and the tests from plain threads. The PostgreSQL backend
 //! runs tokio-postgres on a small runtime of its own (see `postgres.rs`).
 
+mod copy;
 mod postgres;
 mod sqlite;
+
+pub use copy::CopyReport;
 
 use std::path::{Path, PathBuf};
 

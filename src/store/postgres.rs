@@ -23,6 +23,7 @@ use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod, Runtime};
 use tokio_postgres::NoTls;
 use tokio_postgres::error::SqlState;
 
+use super::copy::{self, Cell, Kind, Table};
 use super::{CycleOutputs, ReadingOutcome, Sensors, StoreError, millis, setpoint_of, time};
 use crate::service::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
 
@@ -869,6 +870,103 @@ impl Postgres {
             Key::Text(key.to_string()),
             body,
         )
+    }
+}
+
+impl Postgres {
+    pub(super) fn read_page(
+        &self,
+        table: &'static Table,
+        offset: usize,
+        limit: usize,
+    ) -> Result<Vec<Vec<Cell>>, StoreError> {
+        let sql = copy::select_sql(table, "$1", "$2");
+        let (offset, limit) = (offset as i64, limit as i64);
+        self.run(move |c| {
+            Box::pin(async move {
+                let rows = c.query(&sql, &[&limit, &offset]).await.map_err(pg)?;
+                Ok(rows
+                    .iter()
+                    .map(|r| {
+                        table
+                            .columns
+                            .iter()
+                            .enumerate()
+                            .map(|(i, (_, kind))| match kind {
+                                Kind::Int => {
+                                    r.get::<_, Option<i64>>(i).map_or(Cell::Null, Cell::Int)
+                                }
+                                Kind::Real => {
+                                    r.get::<_, Option<f64>>(i).map_or(Cell::Null, Cell::Real)
+                                }
+                                Kind::Text => {
+                                    r.get::<_, Option<String>>(i).map_or(Cell::Null, Cell::Text)
+                                }
+                            })
+                            .collect()
+                    })
+                    .collect())
+            })
+        })
+    }
+
+    pub(super) fn write_rows(
+        &self,
+        table: &'static Table,
+        rows: Vec<Vec<Cell>>,
+    ) -> Result<(), StoreError> {
+        let sql = copy::insert_sql(table, '$');
+        self.run(move |c| {
+            Box::pin(async move {
+                let tx = c.transaction().await.map_err(pg)?;
+                let stmt = tx.prepare(&sql).await.map_err(pg)?;
+                for row in &rows {
+                    let values: Vec<Box<dyn tokio_postgres::types::ToSql + Sync + Send>> = row
+                        .iter()
+                        .zip(table.columns)
+                        .map(|(cell, (_, kind))| -> Box<dyn tokio_postgres::types::ToSql + Sync + Send> {
+                            match (cell, kind) {
+                                (Cell::Int(v), _) => Box::new(*v),
+                                (Cell::Real(v), _) => Box::new(*v),
+                                (Cell::Text(v), _) => Box::new(v.clone()),
+                                (Cell::Null, Kind::Int) => Box::new(None::<i64>),
+                                (Cell::Null, Kind::Real) => Box::new(None::<f64>),
+                                (Cell::Null, Kind::Text) => Box::new(None::<String>),
+                            }
+                        })
+                        .collect();
+                    let refs: Vec<&(dyn tokio_postgres::types::ToSql + Sync)> = values
+                        .iter()
+                        .map(|v| v.as_ref() as &(dyn tokio_postgres::types::ToSql + Sync))
+                        .collect();
+                    tx.execute(&stmt, &refs).await.map_err(pg)?;
+                }
+                tx.commit().await.map_err(pg)?;
+                Ok(())
+            })
+        })
+    }
+
+    /// After rows came in with their ids: the id sequences continue past
+    /// them.
+    pub(super) fn reset_sequences(&self) -> Result<(), StoreError> {
+        self.run(|c| {
+            Box::pin(async move {
+                for table in ["fields", "measurements", "forecasts", "setpoints"] {
+                    c.execute(
+                        &format!(
+                            "SELECT setval(pg_get_serial_sequence('{table}', 'id'),
+                                 GREATEST((SELECT max(id) FROM {table}), 1),
+                                 (SELECT max(id) FROM {table}) IS NOT NULL)"
+                        ),
+                        &[],
+                    )
+                    .await
+                    .map_err(pg)?;
+                }
+                Ok(())
+            })
+        })
     }
 }
 

@@ -8,6 +8,7 @@ use std::sync::Mutex;
 use chrono::{DateTime, Utc};
 use rusqlite::{Connection, OptionalExtension, params};
 
+use super::copy::{self, Cell, Kind, Table};
 use super::{CycleOutputs, ReadingOutcome, Sensors, StoreError, millis, setpoint_of, time};
 use crate::service::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
 
@@ -678,6 +679,58 @@ impl Sqlite {
                  ON CONFLICT(key) DO UPDATE SET body = excluded.body",
                 params![key, body],
             )?;
+            Ok(())
+        })
+    }
+
+    pub(super) fn read_page(
+        &self,
+        table: &Table,
+        offset: usize,
+        limit: usize,
+    ) -> Result<Vec<Vec<Cell>>, StoreError> {
+        let sql = copy::select_sql(table, "?1", "?2");
+        self.with(|c| {
+            let mut stmt = c.prepare(&sql)?;
+            let rows = stmt.query_map(params![limit as i64, offset as i64], |r| {
+                table
+                    .columns
+                    .iter()
+                    .enumerate()
+                    .map(|(i, (_, kind))| {
+                        use rusqlite::types::Value;
+                        Ok(match (r.get::<_, Value>(i)?, kind) {
+                            (Value::Null, _) => Cell::Null,
+                            (Value::Integer(v), Kind::Real) => Cell::Real(v as f64),
+                            (Value::Integer(v), _) => Cell::Int(v),
+                            (Value::Real(v), _) => Cell::Real(v),
+                            (Value::Text(v), _) => Cell::Text(v),
+                            (Value::Blob(v), _) => Cell::Text(String::from_utf8_lossy(&v).into()),
+                        })
+                    })
+                    .collect::<rusqlite::Result<Vec<Cell>>>()
+            })?;
+            Ok(rows.collect::<Result<Vec<_>, _>>()?)
+        })
+    }
+
+    pub(super) fn write_rows(&self, table: &Table, rows: &[Vec<Cell>]) -> Result<(), StoreError> {
+        let sql = copy::insert_sql(table, '?');
+        self.with(|c| {
+            let tx = c.transaction()?;
+            {
+                let mut stmt = tx.prepare(&sql)?;
+                for row in rows {
+                    let values = row.iter().map(|cell| match cell {
+                        Cell::Null => rusqlite::types::Value::Null,
+                        Cell::Int(v) => rusqlite::types::Value::Integer(*v),
+                        Cell::Real(v) => rusqlite::types::Value::Real(*v),
+                        Cell::Text(v) => rusqlite::types::Value::Text(v.clone()),
+                    });
+                    stmt.execute(rusqlite::params_from_iter(values))?;
+                }
+            }
+            tx.commit()?;
             Ok(())
         })
     }
