@@ -32,7 +32,9 @@ fn bin_dir() -> PathBuf {
         .filter_map(|e| e.ok()?.file_name().to_str()?.parse().ok())
         .collect();
     versions.sort();
-    let v = versions.last().expect("no server under /usr/lib/postgresql");
+    let v = versions
+        .last()
+        .expect("no server under /usr/lib/postgresql");
     root.join(v.to_string()).join("bin")
 }
 
@@ -79,12 +81,20 @@ impl Postgres {
         std::fs::create_dir(&data).unwrap();
         if is_root() {
             for p in [dir.path(), data.as_path()] {
-                let ok = Command::new("chown").arg("postgres:postgres").arg(p).status();
+                let ok = Command::new("chown")
+                    .arg("postgres:postgres")
+                    .arg(p)
+                    .status();
                 assert!(ok.is_ok_and(|s| s.success()), "chown {}", p.display());
             }
         }
         let out = as_server_user(&bin.join("initdb"))
-            .args(["--auth=trust", "--username=rootzone", "--encoding=UTF8", "-D"])
+            .args([
+                "--auth=trust",
+                "--username=rootzone",
+                "--encoding=UTF8",
+                "-D",
+            ])
             .arg(&data)
             .output()
             .expect("initdb");
@@ -195,7 +205,11 @@ impl Postgres {
     /// A new, empty database; returns its URL.
     pub fn fresh_database(&self) -> String {
         static N: AtomicUsize = AtomicUsize::new(0);
-        let name = format!("rz_{}_{}", std::process::id(), N.fetch_add(1, Ordering::Relaxed));
+        let name = format!(
+            "rz_{}_{}",
+            std::process::id(),
+            N.fetch_add(1, Ordering::Relaxed)
+        );
         self.psql("postgres", &format!("CREATE DATABASE {name}"));
         self.url(&name)
     }
