@@ -78,6 +78,11 @@ async fn one_replica_acquires_all_and_renews() {
     assert_eq!(st.live_replicas, 1);
     assert!(st.valid);
     assert!(st.last_renewal_age_s.is_some_and(|s| s < 5.0));
+    // fields no longer asked for are released
+    let fewer = a.tick(&ids(40), &none()).await.unwrap();
+    assert_eq!(fewer.lost, (41..=50).collect::<Vec<_>>());
+    assert!(!a.holds(41) && a.holds(40));
+    assert_eq!(pg.psql(&db, "SELECT count(*) FROM leases"), "40");
     // graceful exit gives everything back at once
     a.release_all().await.unwrap();
     assert!(!a.holds(1));
@@ -333,8 +338,60 @@ async fn database_loss_lapses_leases_and_recovery_renews() {
     pg.resume();
     let c = a.tick(&fields, &none()).await.unwrap();
     assert_eq!(c.held, fields);
+    assert_eq!(c.gained, fields, "after a lapse everything is gained anew");
+    assert!(c.lost.is_empty());
     assert!(fields.iter().all(|&f| a.holds(f)));
     assert!(a.status().valid);
+}
+
+#[tokio::test]
+async fn tick_gives_up_on_a_silent_server_within_the_lease() {
+    // accepts connections (the kernel's backlog) and never answers
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!(
+        "postgres://rootzone@127.0.0.1:{}/x",
+        silent.local_addr().unwrap().port()
+    );
+    let lease = Duration::from_secs(1);
+    let a = manager(&url, "patient", lease);
+    let t = Instant::now();
+    let err = a.tick(&ids(3), &none()).await.unwrap_err();
+    let took = t.elapsed();
+    println!("tick against a silent server failed after {took:?}: {err}");
+    assert!(took <= lease + Duration::from_millis(500), "{took:?}");
+    assert!(!a.holds(1));
+    assert!(!a.status().valid);
+}
+
+#[tokio::test]
+async fn tick_blocked_by_a_lock_gives_up_and_lapses() {
+    let pg = Postgres::shared();
+    let (_db, url) = database(pg, 10);
+    let lease = Duration::from_millis(1500);
+    let a = manager(&url, "blocked", lease);
+    let fields = ids(10);
+    a.tick(&fields, &none()).await.unwrap();
+    // another session locks every lease row and keeps its transaction open
+    let (blocker, conn) = tokio_postgres::connect(&url, tokio_postgres::NoTls)
+        .await
+        .unwrap();
+    let conn = tokio::spawn(conn);
+    blocker
+        .batch_execute("BEGIN; SELECT * FROM leases FOR UPDATE")
+        .await
+        .unwrap();
+    let t = Instant::now();
+    let err = a.tick(&fields, &none()).await.unwrap_err();
+    let took = t.elapsed();
+    println!("tick blocked by a lock failed after {took:?}: {err}");
+    assert!(took <= lease + Duration::from_millis(500), "{took:?}");
+    assert!(!a.holds(1), "a blocked renewal extends nothing");
+    blocker.batch_execute("COMMIT").await.unwrap();
+    let c = a.tick(&fields, &none()).await.unwrap();
+    assert_eq!(c.gained, fields);
+    assert!(fields.iter().all(|&f| a.holds(f)));
+    drop(blocker);
+    let _ = conn.await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -188,7 +188,7 @@ pub fn generated_id() -> String {
 pub enum LeaseError {
     /// No connection could be had from the pool (database down, pool
     /// exhausted, connection attempt timed out).
-    #[error("lease database: no connection: {0}")]
+    #[error("lease database: no connection: {}", describe_pool(.0))]
     Pool(#[from] deadpool_postgres::PoolError),
     /// A statement failed.
     #[error("lease database: {}", describe(.0))]
@@ -199,6 +199,14 @@ pub enum LeaseError {
     /// The connection settings are not usable.
     #[error("lease database settings: {0}")]
     Config(String),
+}
+
+/// A pool error with the connection's cause, if any.
+fn describe_pool(e: &deadpool_postgres::PoolError) -> String {
+    match e {
+        deadpool_postgres::PoolError::Backend(e) => describe(e),
+        other => other.to_string(),
+    }
 }
 
 /// A postgres error with the server's message and its cause, if any.
@@ -307,7 +315,7 @@ pub struct Change {
 pub struct LeaseStatus {
     /// This replica's id.
     pub replica: String,
-    /// Fields held after the last successful tick.
+    /// Fields [`Leases::holds`] is true for (none once the deadline lapsed).
     pub held: usize,
     /// Live replicas (this one included) seen by the last successful tick.
     pub live_replicas: usize,
@@ -321,7 +329,11 @@ pub struct LeaseStatus {
 
 #[derive(Debug, Default)]
 struct State {
+    /// What [`Leases::holds`] answers from (with `valid_until`).
     held: BTreeSet<i64>,
+    /// The held fields as told by the last [`Change`] (a tick shrinks
+    /// `held` before it releases; this stays until the tick succeeds).
+    reported: BTreeSet<i64>,
     /// The local deadline of every held lease.
     valid_until: Option<Instant>,
     /// When the last successful renewal was sent.
@@ -457,7 +469,11 @@ impl Leases {
         let now = Instant::now();
         LeaseStatus {
             replica: self.id.clone(),
-            held: s.held.len(),
+            held: if now < s.valid_until.unwrap_or(now) {
+                s.held.len()
+            } else {
+                0
+            },
             live_replicas: s.live_replicas,
             last_renewal_age_s: s.renewed.map(|r| now.duration_since(r).as_secs_f64()),
             valid: s.valid_until.is_some_and(|v| now < v),
@@ -470,9 +486,22 @@ impl Leases {
     /// fields in the share and acquire the free or expired ones. Two
     /// statements in all. Fields without a row in `fields` are ignored.
     ///
+    /// Fields to be released stop being held locally *before* the release
+    /// is sent, so there is no moment at which this replica still believes
+    /// it holds a field that another could already have taken.
+    ///
+    /// The [`Change`] is relative to the last successful tick; if the local
+    /// deadline had lapsed in between (ticks failed for a lease), every
+    /// field held now counts as gained: it was nobody's, or someone else's,
+    /// for a while, and its state must be re-read.
+    ///
     /// Call it well within the lease (e.g. every lease / 4). It returns
-    /// within about one lease whatever the database does; on an error
-    /// nothing is extended and [`Leases::holds`] lapses at the old deadline.
+    /// within about one lease whatever the database does (pool, connect and
+    /// statement timeouts, and the whole tick bounded by the lease); on an
+    /// error nothing is extended and [`Leases::holds`] lapses at the old
+    /// deadline. A deadlock between two replicas' statements, possible only
+    /// for a moment after a membership change, is broken by the server and
+    /// fails one of the ticks; the next one is normal.
     pub async fn tick(&self, fields: &[i64], busy: &HashSet<i64>) -> Result<Change, LeaseError> {
         let _turn = self.turn.lock().await;
         let started = Instant::now();
@@ -498,11 +527,19 @@ impl Leases {
                 }
             };
         let mut s = self.state();
+        // after a lapse the fields were nobody's for a while (another
+        // replica may have run them): they count as gained anew
+        let lapsed = s.valid_until.is_none_or(|v| sent >= v);
         let change = Change {
-            gained: held.difference(&s.held).copied().collect(),
-            lost: s.held.difference(&held).copied().collect(),
+            gained: if lapsed {
+                held.iter().copied().collect()
+            } else {
+                held.difference(&s.reported).copied().collect()
+            },
+            lost: s.reported.difference(&held).copied().collect(),
             held: held.iter().copied().collect(),
         };
+        s.reported = held.clone();
         s.held = held;
         s.valid_until = Some(sent + self.lease - self.margin);
         s.renewed = Some(sent);
@@ -541,8 +578,16 @@ impl Leases {
             .copied()
             .filter(|&f| owner(&live, f) == Some(self.id.as_str()))
             .collect();
-        let busy: Vec<i64> = busy.iter().copied().collect();
         let renew = client.prepare_cached(RENEW).await?;
+        {
+            // stop holding what is about to be released *before* the
+            // release reaches the database: once it has, another replica
+            // may take the field at once
+            let mut s = self.state();
+            s.held
+                .retain(|f| share.binary_search(f).is_ok() || busy.contains(f));
+        }
+        let busy: Vec<i64> = busy.iter().copied().collect();
         let sent = Instant::now();
         let rows = client
             .query(&renew, &[&self.id, &share, &busy, &lease_s])
@@ -558,6 +603,7 @@ impl Leases {
         {
             let mut s = self.state();
             s.held.clear();
+            s.reported.clear();
             s.valid_until = None;
         }
         let _turn = self.turn.lock().await;
@@ -577,6 +623,9 @@ impl Leases {
 const BACKOFF_MIN: Duration = Duration::from_millis(200);
 /// Longest wait between reconnection attempts.
 const BACKOFF_MAX: Duration = Duration::from_secs(5);
+
+/// Longest a connection of [`listen`] may take to be ready.
+const LISTEN_CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// `name` as a quoted SQL identifier.
 fn quote_ident(name: &str) -> String {
@@ -646,10 +695,18 @@ async fn listen_once(
     cancel: &CancellationToken,
     reconnect: bool,
 ) -> Result<(), (bool, String)> {
-    let (client, mut connection) = config
-        .connect(NoTls)
-        .await
-        .map_err(|e| (false, describe(&e)))?;
+    // the connect timeout covers the TCP connection only: bound the
+    // start-up exchange too (a server that accepts and never answers)
+    let (client, mut connection) =
+        tokio::time::timeout(LISTEN_CONNECT_TIMEOUT, config.connect(NoTls))
+            .await
+            .map_err(|_| {
+                (
+                    false,
+                    format!("no answer within {LISTEN_CONNECT_TIMEOUT:?}"),
+                )
+            })?
+            .map_err(|e| (false, describe(&e)))?;
     let messages = futures_util::stream::poll_fn(move |cx| connection.poll_message(cx));
     tokio::pin!(messages);
     // LISTEN while driving the connection
