@@ -405,6 +405,11 @@ DELETE FROM replicas WHERE id = $1";
 
 /// The lease manager of one replica. See the module documentation for the
 /// invariants.
+///
+/// Every replica must have its own id (generated ids are) and the same
+/// lease (the same `replicas.lease_s` and `clock.speedup`): liveness is
+/// judged with the judge's lease. A process restarted with a configured id
+/// takes over the leases its predecessor still had.
 pub struct Leases {
     pool: Pool,
     id: String,
@@ -439,6 +444,13 @@ impl Leases {
     /// The wall-clock lease.
     pub fn lease(&self) -> Duration {
         self.lease
+    }
+
+    /// A good interval between ticks: a quarter of the lease, so that a
+    /// tick or two may fail (or be late) before the local deadline, at
+    /// four-fifths of the lease, lapses.
+    pub fn tick_interval(&self) -> Duration {
+        self.lease / 4
     }
 
     fn state(&self) -> std::sync::MutexGuard<'_, State> {
@@ -600,13 +612,17 @@ impl Leases {
     /// replica's leases and its replica row, so the others take its fields
     /// on their next tick instead of after a lease.
     pub async fn release_all(&self) -> Result<(), LeaseError> {
-        {
+        let forget = || {
             let mut s = self.state();
             s.held.clear();
             s.reported.clear();
             s.valid_until = None;
-        }
+        };
+        forget();
         let _turn = self.turn.lock().await;
+        // a tick that was under way has stored what it renewed: forget it
+        // too, before the leases go
+        forget();
         let budget = self.lease;
         let work = async {
             let client = self.pool.get().await?;
