@@ -22,7 +22,15 @@
 //!   between this host and the database host and the time it takes a cycle
 //!   to notice. Another replica can take the field only after `expires_at`,
 //!   hence only after this replica's [`Leases::holds`] has already turned
-//!   false: no two replicas ever both believe they hold a field.
+//!   false: no two replicas ever both believe they hold a field. The other
+//!   way a field changes hands, a release, is safe for the same reason: the
+//!   field leaves the local set before the `DELETE` is sent.
+//! * **Check before acting.** A cycle that started while `holds` was true
+//!   may outlive the deadline (the database went away mid-cycle): callers
+//!   check [`Leases::holds`] again right before each valve command or
+//!   stored output, not only when the cycle starts. Fields with a cycle
+//!   under way are passed as `busy` to [`Leases::tick`], which renews them
+//!   instead of handing them over mid-cycle.
 //! * **A failed tick extends nothing.** When the database is unreachable,
 //!   [`Leases::tick`] fails (quickly: every step is bounded by timeouts) and
 //!   `valid_until` stays where the last successful renewal put it, so the
@@ -497,6 +505,14 @@ impl Leases {
     /// the share unless `busy` (busy ones are renewed instead), renew held
     /// fields in the share and acquire the free or expired ones. Two
     /// statements in all. Fields without a row in `fields` are ignored.
+    ///
+    /// Acquisition is one `INSERT … ON CONFLICT (field_id) DO UPDATE … WHERE
+    /// leases.holder = me OR leases.expires_at < clock_timestamp()`, not
+    /// `SELECT … FOR UPDATE SKIP LOCKED`: under READ COMMITTED a second
+    /// replica racing for the same expired row waits for the first's row
+    /// lock and re-checks the `WHERE` against the row the first wrote, so
+    /// exactly one wins, and renewals, free rows and takeovers all go in one
+    /// round trip with the expiry judged by the database clock.
     ///
     /// Fields to be released stop being held locally *before* the release
     /// is sent, so there is no moment at which this replica still believes
