@@ -20,7 +20,8 @@
 //!   than `sent`, so `expires_at ≥ sent + lease` (in the database's time).
 //!   The margin (a fifth of the lease) absorbs a difference in clock *rates*
 //!   between this host and the database host and the time it takes a cycle
-//!   to notice. Another replica can take the field only after `expires_at`,
+//!   to notice. (It cannot absorb a *step* of the database's clock: the
+//!   database host's time must be slewed, not stepped, while replicas run.) Another replica can take the field only after `expires_at`,
 //!   hence only after this replica's [`Leases::holds`] has already turned
 //!   false: no two replicas ever both believe they hold a field. The other
 //!   way a field changes hands, a release, is safe for the same reason: the
