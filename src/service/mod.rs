@@ -10,6 +10,7 @@ pub mod engine;
 pub mod explain;
 pub mod history;
 pub mod metrics;
+pub mod replicas;
 pub mod settings;
 pub use crate::store;
 pub mod training;
