@@ -69,7 +69,8 @@ async fn main() {
     let t0 = Utc::now() - TimeDelta::days(20);
     let mut tasks = Vec::new();
     for &id in &ids {
-        let (http, base, acked, failed) = (http.clone(), base.clone(), acked.clone(), failed.clone());
+        let (http, base, acked, failed) =
+            (http.clone(), base.clone(), acked.clone(), failed.clone());
         tasks.push(tokio::spawn(async move {
             let mut k: i64 = 0;
             while Instant::now() < until {

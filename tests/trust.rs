@@ -323,8 +323,42 @@ fn the_data_folder_is_private() {
     let _d = start(dir.path(), &config(""));
     let mode = |p: &std::path::Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
     let data = dir.path().join("data");
+    if on_postgres() {
+        // the data live in the server; no database file here
+        assert!(!data.join("rootzone.sqlite3").exists());
+        return;
+    }
     assert_eq!(mode(&data), 0o700);
     assert_eq!(mode(&data.join("rootzone.sqlite3")), 0o600);
+}
+
+#[test]
+fn an_unusable_database_stops_the_start_with_the_reason() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let unreachable = format!("postgres://rootzone:hidden@127.0.0.1:{port}/rootzone");
+    let (code, stderr) = serve_with(
+        &[("ROOTZONE_STORAGE__URL", unreachable.as_str())],
+        Duration::from_secs(20),
+    );
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("cannot connect") && stderr.contains(&port.to_string()),
+        "{stderr}"
+    );
+    assert!(
+        !stderr.contains("hidden"),
+        "the password is not shown: {stderr}"
+    );
+    let (code, stderr) = serve_with(
+        &[("ROOTZONE_STORAGE__URL", "mysql://db/rootzone")],
+        Duration::from_secs(10),
+    );
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("storage.url"), "{stderr}");
 }
 
 /// `rootzone serve` with extra environment: its exit code (None if it kept

@@ -121,7 +121,7 @@ pub fn router(state: Arc<AppState>) -> Router {
     let request_header = header::HeaderName::from_static("x-request-id");
     Router::new()
         .route("/", get(dashboard))
-        .route("/healthz", get(|| async { "ok\n" }))
+        .route("/healthz", get(healthz))
         .route("/readyz", get(ready))
         .route("/metrics", get(metrics))
         .route("/v1/clock", get(clock))
@@ -327,6 +327,29 @@ pub(crate) async fn load_field(state: &Arc<AppState>, raw: &str) -> ApiResult<Fi
             .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no field {id}")))
     })
     .await
+}
+
+/// Liveness, and who this replica is: its id, its storage, whether the
+/// database answers and, on PostgreSQL, its leases (how many, how long
+/// since they were renewed, whether they are valid).
+async fn healthz(State(state): State<Arc<AppState>>) -> Json<serde_json::Value> {
+    // on PostgreSQL the lease loop's last tick tells (no wait on a lost server)
+    let up = match &state.leases {
+        Some(_) => state.metrics.database_up.get() == 1,
+        None => {
+            let engine = state.engine.clone();
+            blocking(move || engine.store.ping().map_err(ApiError::internal))
+                .await
+                .is_ok()
+        }
+    };
+    Json(serde_json::json!({
+        "status": "ok",
+        "replica": state.replica,
+        "storage": state.engine.store.kind(),
+        "database": if up { "up" } else { "unavailable" },
+        "leases": state.leases.as_ref().map(|l| l.status()),
+    }))
 }
 
 async fn ready(State(state): State<Arc<AppState>>) -> ApiResult<&'static str> {

@@ -67,6 +67,12 @@ pub struct AppState {
     pub token: String,
     /// This replica's id (the holder named in leases and cycle runs).
     pub replica: String,
+    /// The fields' leases (PostgreSQL); None: this process runs every field.
+    pub leases: Option<Arc<replicas::Leases>>,
+    /// The fields whose cycle runs now (a lease is not released under one).
+    running: Mutex<std::collections::HashSet<i64>>,
+    /// Wakes the lease loop (a field was created, changed or deleted).
+    rebalance: tokio::sync::Notify,
     pub settings: Settings,
     /// The per-field surrogate training jobs.
     pub training: Arc<training::Jobs>,
@@ -106,6 +112,12 @@ impl AppState {
             .clone()
     }
 
+    /// Whether this replica may run field `id`'s cycles now: always on
+    /// SQLite; on PostgreSQL while it holds a lease that has not lapsed.
+    pub fn holds(&self, id: i64) -> bool {
+        self.leases.as_ref().is_none_or(|l| l.holds(id))
+    }
+
     /// Cancelled when the daemon shuts down.
     pub fn shutdown_token(&self) -> CancellationToken {
         self.shutdown.clone()
@@ -132,23 +144,6 @@ fn read_token(dir: &Path) -> Result<String, ServeError> {
     write_private(&path, &token)
         .map_err(|e| ServeError::Io(format!("cannot write {}: {e}", path.display())))?;
     Ok(token)
-}
-
-/// A replica's id when none is set: host name, process id and a random
-/// suffix (a restarted process is a new replica).
-fn default_replica_id() -> String {
-    let host = std::fs::read_to_string("/etc/hostname")
-        .ok()
-        .map(|h| h.trim().to_string())
-        .filter(|h| !h.is_empty())
-        .unwrap_or_else(|| "rootzone".into());
-    let host: String = host
-        .chars()
-        .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_'))
-        .take(40)
-        .collect();
-    let suffix = random_hex(3).unwrap_or_default();
-    format!("{host}-{}-{suffix}", std::process::id())
 }
 
 /// Logging through `tracing` to stderr: `RUST_LOG` when set, else the
@@ -264,7 +259,13 @@ impl App {
                     tracing::warn!(field = %spec.name, secret = %s,
                         "webhook secret generated (set actuator.secret in the configuration to choose it)");
                 }
-                store.create_field(&spec, clock.now())?;
+                match store.create_field(&spec, clock.now()) {
+                    // another replica starting beside this one made it
+                    Err(store::StoreError::Conflict(_)) => {}
+                    other => {
+                        other?;
+                    }
+                }
             }
         }
         let listener = TcpListener::bind(&settings.listen)
@@ -294,7 +295,22 @@ impl App {
             Some((client, eventloop)) => (Some(Arc::new(client)), Some(eventloop)),
             None => (None, None),
         };
-        let replica = default_replica_id();
+        let replica = settings.replicas.replica_id();
+        // several replicas on PostgreSQL: fields are leased; on SQLite this
+        // process runs every field
+        let leases = match (&settings.storage.url, store.kind()) {
+            (Some(url), "postgres") => {
+                let lease = settings.replicas.wall_lease(clock.speedup());
+                let pool = replicas::pool(url, lease).map_err(|e| ServeError::Io(e.to_string()))?;
+                Some(Arc::new(replicas::Leases::new(
+                    pool,
+                    replica.clone(),
+                    lease,
+                )))
+            }
+            _ => None,
+        };
+        tracing::info!(replica = %replica, storage = store.kind(), "storage open");
         let state = Arc::new(AppState {
             engine: Arc::new(
                 Engine::new(store, models)
@@ -309,6 +325,9 @@ impl App {
             metrics: Metrics::new(),
             token,
             replica,
+            leases,
+            running: Mutex::new(std::collections::HashSet::new()),
+            rebalance: tokio::sync::Notify::new(),
             permits: Arc::new(Semaphore::new(settings.limits.worker_threads)),
             settings,
             measured: Mutex::new(HashMap::new()),
@@ -340,9 +359,27 @@ impl App {
                 .tracker
                 .spawn(async move { crate::adapters::mqtt::client::run(s, mqtt, eventloop).await });
         }
-        // every field's first cycle runs now, then at its period boundaries
-        for field in state.engine.store.fields()? {
-            spawn_field(&state, &field, true);
+        state
+            .metrics
+            .replica
+            .with_label_values(&[state.replica.as_str(), state.engine.store.kind()])
+            .set(1.0);
+        state.metrics.database_up.set(1);
+        match state.leases.clone() {
+            // every field's first cycle runs now, then at its period boundaries
+            None => {
+                for field in state.engine.store.fields()? {
+                    spawn_field(&state, &field, Start::Now);
+                }
+            }
+            // the fields this replica leases, as it gains them
+            Some(leases) => {
+                let s = state.clone();
+                state
+                    .tracker
+                    .spawn(async move { lease_loop(s, leases).await });
+                listen_for_changes(&state);
+            }
         }
         let s = state.clone();
         state.tracker.spawn(async move { forecast_loop(s).await });
@@ -376,17 +413,157 @@ impl App {
             .engine
             .store
             .set_meta("clock", &state.clock.now().to_rfc3339());
+        if let Some(leases) = &state.leases {
+            // the others take this replica's fields at their next tick
+            if let Err(e) = leases.release_all().await {
+                tracing::warn!(error = %e, "leases not released; they expire");
+            }
+        }
         result.map_err(|e| ServeError::Io(format!("server: {e}")))
     }
 }
 
-/// Starts the scheduled tasks of a field: its control loop and, for a
-/// simulated field, its plant.
+/// Starts the scheduled tasks of a new field: its control loop and, for a
+/// simulated field, its plant (on PostgreSQL: on the replica that gains its
+/// lease, asked to look now).
 pub(crate) fn start_field(state: &Arc<AppState>, field: &Field) {
     if let Some(mqtt) = &state.mqtt {
         mqtt.announce(state, field);
     }
-    spawn_field(state, field, false)
+    match &state.leases {
+        None => spawn_field(state, field, Start::Wait),
+        Some(_) => {
+            if !state.holds(field.id) {
+                // the first cycle ran here: the holder's plant is the one
+                state.engine.forget(field.id);
+            }
+            state.rebalance.notify_one();
+        }
+    }
+}
+
+/// How a field's control loop begins.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Start {
+    /// A cycle now (the daemon's start on SQLite).
+    Now,
+    /// At the next boundary (a new field has had its first cycle).
+    Wait,
+    /// This replica gained the field's lease: the latest boundary's cycle
+    /// now if no replica has run it, then the next boundaries.
+    CatchUp,
+}
+
+/// The lease loop of a replica on PostgreSQL: every quarter lease (or when
+/// a field changes) it renews, gains and releases leases
+/// ([`replicas::Leases::tick`]) and starts or stops the fields' tasks to
+/// match. When the database is lost the ticks fail, the leases lapse
+/// before the database would give them to another replica, and the
+/// fields' loops skip their cycles (`holds` is false) until it returns.
+async fn lease_loop(state: Arc<AppState>, leases: Arc<replicas::Leases>) {
+    let m = &state.metrics;
+    m.replica
+        .with_label_values(&[state.replica.as_str(), "postgres"])
+        .set(1.0);
+    loop {
+        let engine = state.engine.clone();
+        let fields = tokio::task::spawn_blocking(move || engine.store.fields())
+            .await
+            .ok()
+            .and_then(Result::ok);
+        match fields {
+            Some(fields) => {
+                let ids: Vec<i64> = fields.iter().map(|f| f.id).collect();
+                let busy = state
+                    .running
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .clone();
+                match leases.tick(&ids, &busy).await {
+                    Ok(change) => {
+                        m.database_up.set(1);
+                        for id in &change.lost {
+                            stop_field(&state, *id);
+                        }
+                        for id in &change.gained {
+                            if let Some(f) = fields.iter().find(|f| f.id == *id) {
+                                // a plant another replica moved on: reread
+                                state.engine.forget(*id);
+                                spawn_field(&state, f, Start::CatchUp);
+                            }
+                        }
+                        if !change.gained.is_empty() || !change.lost.is_empty() {
+                            tracing::info!(
+                                gained = change.gained.len(),
+                                lost = change.lost.len(),
+                                held = change.held.len(),
+                                "leases"
+                            );
+                        }
+                    }
+                    Err(e) => {
+                        m.database_up.set(0);
+                        tracing::warn!(error = %e, "lease renewal failed; cycles pause when the leases lapse");
+                    }
+                }
+            }
+            None => {
+                m.database_up.set(0);
+                tracing::warn!("the database is unavailable; cycles pause when the leases lapse");
+            }
+        }
+        let status = leases.status();
+        m.leases_held.set(status.held as i64);
+        m.lease_age_seconds
+            .set(status.last_renewal_age_s.unwrap_or(f64::NAN));
+        tokio::select! {
+            _ = tokio::time::sleep(leases.tick_interval()) => {}
+            _ = state.rebalance.notified() => {}
+            _ = state.shutdown.cancelled() => return,
+        }
+    }
+}
+
+/// Forwards the database's notifications: stored measurements wake the
+/// cycle waiting for them on this replica, changed fields the lease loop.
+fn listen_for_changes(state: &Arc<AppState>) {
+    const CHANNELS: &[&str] = &[store::CHANNEL_MEASURED, store::CHANNEL_FIELDS];
+    let Some(config) = state
+        .settings
+        .storage
+        .url
+        .as_deref()
+        .and_then(|u| u.parse::<tokio_postgres::Config>().ok())
+    else {
+        return;
+    };
+    let s = state.clone();
+    let on = move |channel: &str, payload: &str| {
+        if payload.is_empty() {
+            // reconnected: whatever was missed, everyone checks again
+            let waiting: Vec<_> = s
+                .measured
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .values()
+                .cloned()
+                .collect();
+            for n in waiting {
+                n.notify_waiters();
+            }
+            s.rebalance.notify_one();
+        } else if channel == store::CHANNEL_MEASURED {
+            if let Ok(id) = payload.parse::<i64>() {
+                s.measured(id).notify_waiters();
+            }
+        } else {
+            s.rebalance.notify_one();
+        }
+    };
+    let cancel = state.shutdown.clone();
+    state
+        .tracker
+        .spawn(async move { replicas::listen(config, CHANNELS, on, cancel).await });
 }
 
 /// Runs a field's first cycle now (at creation and at start): a simulated
@@ -409,7 +586,7 @@ pub(crate) async fn first_cycle(state: &Arc<AppState>, field: &Field) {
     }
 }
 
-fn spawn_field(state: &Arc<AppState>, field: &Field, cycle_now: bool) {
+fn spawn_field(state: &Arc<AppState>, field: &Field, start: Start) {
     let token = state.shutdown.child_token();
     if let Some(old) = state
         .field_tasks
@@ -422,8 +599,7 @@ fn spawn_field(state: &Arc<AppState>, field: &Field, cycle_now: bool) {
     let (s, id, t) = (state.clone(), field.id, token.clone());
     state
         .tracker
-        .spawn(async move { control_loop(s, id, t, cycle_now).await });
-    // (cycle_now: the daemon's start; a new field has had its first cycle)
+        .spawn(async move { control_loop(s, id, t, start).await });
     if field.spec.actuator == Actuator::Simulated {
         let (s, id) = (state.clone(), field.id);
         state
@@ -451,10 +627,18 @@ pub(crate) fn stop_field(state: &AppState, id: i64) {
 }
 
 /// One cycle per control period, at the period boundaries of the clock.
-async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, cycle_now: bool) {
-    if cycle_now && let Ok(Some(field)) = state.engine.store.field(id) {
+async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, start: Start) {
+    if start == Start::Now
+        && let Ok(Some(field)) = state.engine.store.field(id)
+    {
         tokio::select! {
             _ = first_cycle(&state, &field) => {}
+            _ = cancel.cancelled() => return,
+        }
+    }
+    if start == Start::CatchUp {
+        tokio::select! {
+            _ = catch_up(&state, id) => {}
             _ = cancel.cancelled() => return,
         }
     }
@@ -475,8 +659,70 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, 
                 _ = cancel.cancelled() => return,
             }
         }
+        if !state.holds(id) {
+            // the lease lapsed (the database is lost) or moved: no cycle
+            tracing::warn!(field = id, at = %next, "cycle skipped: this replica's lease has lapsed");
+            continue;
+        }
         if let Err(e) = run_cycle(&state, field, next, true).await {
             tracing::warn!(field = id, at = %next, error = %e, "control cycle failed");
+        }
+    }
+}
+
+/// A gained field's first cycle, if it has had none; else its latest
+/// boundary, run now unless a replica has run it
+/// (the replica that held the field died before, or during, its cycle);
+/// a boundary before the field existed is not one of its cycles.
+async fn catch_up(state: &Arc<AppState>, id: i64) {
+    // a field created within the last lease gets its first cycle from the
+    // replica that created it (in the request): this one waits that long
+    // before it looks for one
+    let lease = state.settings.replicas.lease_s;
+    let created = state
+        .engine
+        .store
+        .field(id)
+        .ok()
+        .flatten()
+        .map(|f| f.created_at);
+    if let Some(created) = created {
+        let settled = clock::add_seconds(created, lease);
+        if state.clock.now() < settled {
+            state.clock.sleep_until(settled).await;
+        }
+    }
+    let engine = state.engine.clone();
+    let now = state.clock.now();
+    let due = tokio::task::spawn_blocking(
+        move || -> Result<Option<(Field, DateTime<Utc>)>, store::StoreError> {
+            let Some(field) = engine.store.field(id)? else {
+                return Ok(None);
+            };
+            if engine.store.recent_setpoints(id, 1)?.is_empty() {
+                // a field without a setpoint yet: its first cycle, now
+                return Ok(Some((field, now)));
+            }
+            let boundary = clock::boundary_at_or_before(now, field.spec.control_period_s);
+            if boundary < field.created_at
+                || !engine.store.cycle_runs(id, boundary, boundary)?.is_empty()
+            {
+                return Ok(None);
+            }
+            Ok(Some((field, boundary)))
+        },
+    )
+    .await;
+    if let Ok(Ok(Some((field, boundary)))) = due
+        && state.holds(id)
+    {
+        if boundary == now {
+            first_cycle(state, &field).await;
+            return;
+        }
+        tracing::info!(field = id, at = %boundary, "catching up a boundary no replica has run");
+        if let Err(e) = run_cycle(state, field, boundary, true).await {
+            tracing::warn!(field = id, at = %boundary, error = %e, "catch-up cycle failed");
         }
     }
 }
@@ -626,6 +872,7 @@ async fn run_cycle_in(
         .acquire_owned()
         .await
         .map_err(|e| e.to_string())?;
+    let _busy = Busy::mark(state, field.id);
     let engine = state.engine.clone();
     let f = field.clone();
     let replica = state.replica.clone();
@@ -651,6 +898,10 @@ async fn run_cycle_in(
             return Err("the control cycle failed (see the daemon's log)".into());
         }
     };
+    if scheduled {
+        let late = (state.clock.now() - at).as_seconds_f64() / state.clock.speedup();
+        state.metrics.cycle_lateness_seconds.observe(late.max(0.0));
+    }
     span.record("status", setpoint.status.as_str());
     span.record("iterations", setpoint.iterations);
     span.record("solve_ms", setpoint.solve_ms);
@@ -716,6 +967,33 @@ async fn run_cycle_in(
         );
     }
     Ok(Some(setpoint))
+}
+
+/// Marks a field's cycle as running while it lives.
+struct Busy<'a> {
+    state: &'a AppState,
+    id: i64,
+}
+
+impl<'a> Busy<'a> {
+    fn mark(state: &'a AppState, id: i64) -> Busy<'a> {
+        state
+            .running
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(id);
+        Busy { state, id }
+    }
+}
+
+impl Drop for Busy<'_> {
+    fn drop(&mut self) {
+        self.state
+            .running
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&self.id);
+    }
 }
 
 /// Resolves on SIGINT or SIGTERM.

@@ -58,6 +58,8 @@ pub const ENV_KEYS: &[&str] = &[
     "mqtt.queue",
     "mqtt.batch_max",
     "storage.url",
+    "replicas.id",
+    "replicas.lease_s",
 ];
 
 /// The environment variable of a settings key.
@@ -99,6 +101,10 @@ pub struct Settings {
     /// file in `data_dir`.
     #[serde(default)]
     pub storage: StorageSettings,
+    /// Several replicas on one PostgreSQL (`ROOTZONE_REPLICAS__…`): this
+    /// replica's id and the fields' lease.
+    #[serde(default)]
+    pub replicas: super::replicas::ReplicaSettings,
     /// Fields created at first start (when the database holds none).
     pub fields: Vec<FieldSpec>,
 }
@@ -266,6 +272,7 @@ impl Default for Settings {
             forecasts: Default::default(),
             mqtt: Default::default(),
             storage: Default::default(),
+            replicas: Default::default(),
             fields: vec![FieldSpec::demo()],
         }
     }
@@ -335,6 +342,7 @@ impl Settings {
         self.forecasts.validate().map_err(SettingsError)?;
         self.mqtt.validate().map_err(SettingsError)?;
         self.storage_location()?;
+        self.replicas.validate().map_err(SettingsError)?;
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return bad(format!(
                 "log.level = '{}' is not a tracing filter (e.g. info, debug, rootzone=debug)",

@@ -74,17 +74,9 @@ const MIGRATIONS: &[&str] = &[
          boundary BIGINT NOT NULL,
          replica TEXT NOT NULL,
          done_at TIMESTAMPTZ NOT NULL DEFAULT clock_timestamp(),
-         PRIMARY KEY (field_id, boundary));
-     CREATE TABLE replicas (
-         id TEXT PRIMARY KEY,
-         started_at TIMESTAMPTZ NOT NULL,
-         heartbeat_at TIMESTAMPTZ NOT NULL);
-     CREATE TABLE leases (
-         field_id BIGINT PRIMARY KEY REFERENCES fields(id) ON DELETE CASCADE,
-         holder TEXT NOT NULL,
-         expires_at TIMESTAMPTZ NOT NULL,
-         acquired_at TIMESTAMPTZ NOT NULL);
-     CREATE INDEX leases_by_holder ON leases(holder);",
+         PRIMARY KEY (field_id, boundary));",
+    // the replicas and their leases of fields
+    crate::service::replicas::SCHEMA,
 ];
 
 /// The schema version this binary brings a database to.

@@ -32,11 +32,37 @@ impl Drop for Daemon {
     }
 }
 
-/// Starts the daemon with `config` (TOML) in `dir`; returns once it listens.
+/// Whether this test binary runs the daemons on PostgreSQL: the twins of
+/// the service tests (`tests/*_on_postgres.rs`) include the SQLite ones.
+pub fn on_postgres() -> bool {
+    env!("CARGO_CRATE_NAME").ends_with("_on_postgres")
+}
+
+/// The database of the daemon in `dir` (on the test process's server): one
+/// per folder, so a daemon restarted in it finds its data.
+pub fn database_of(dir: &Path) -> String {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    static DATABASES: OnceLock<Mutex<HashMap<std::path::PathBuf, String>>> = OnceLock::new();
+    let mut map = DATABASES
+        .get_or_init(Default::default)
+        .lock()
+        .unwrap_or_else(|p| p.into_inner());
+    map.entry(dir.to_path_buf())
+        .or_insert_with(|| postgres::Postgres::shared().fresh_database())
+        .clone()
+}
+
+/// Starts the daemon with `config` (TOML) in `dir`; returns once it listens
+/// (on PostgreSQL in the `_on_postgres` twins).
 pub fn start(dir: &Path, config: &str) -> Daemon {
     let file = dir.join("rootzone.toml");
     std::fs::write(&file, config).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rootzone"))
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rootzone"));
+    if on_postgres() {
+        command.env("ROOTZONE_STORAGE__URL", database_of(dir));
+    }
+    let mut child = command
         .args(["serve", "--config"])
         .arg(&file)
         .env("ROOTZONE_LISTEN", "127.0.0.1:0")
