@@ -300,7 +300,9 @@ impl App {
         // process runs every field
         let leases = match (&settings.storage.url, store.kind()) {
             (Some(url), "postgres") => {
-                let lease = settings.replicas.wall_lease(clock.speedup());
+                // the database lease is ¾ of lease_s, renewed every quarter
+                // of that: a dead replica's fields are taken within lease_s
+                let lease = settings.replicas.wall_lease(clock.speedup()).mul_f64(0.75);
                 let pool = replicas::pool(url, lease).map_err(|e| ServeError::Io(e.to_string()))?;
                 Some(Arc::new(replicas::Leases::new(
                     pool,

@@ -56,12 +56,18 @@ pub fn database_of(dir: &Path) -> String {
 /// Starts the daemon with `config` (TOML) in `dir`; returns once it listens
 /// (on PostgreSQL in the `_on_postgres` twins).
 pub fn start(dir: &Path, config: &str) -> Daemon {
+    start_with(dir, config, &[])
+}
+
+/// [`start`] with extra environment variables.
+pub fn start_with(dir: &Path, config: &str, env: &[(&str, &str)]) -> Daemon {
     let file = dir.join("rootzone.toml");
     std::fs::write(&file, config).unwrap();
     let mut command = Command::new(env!("CARGO_BIN_EXE_rootzone"));
     if on_postgres() {
         command.env("ROOTZONE_STORAGE__URL", database_of(dir));
     }
+    command.envs(env.iter().copied());
     let mut child = command
         .args(["serve", "--config"])
         .arg(&file)
