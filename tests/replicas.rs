@@ -149,11 +149,10 @@ fn a_killed_replica_s_fields_resume_on_the_others_with_no_cycle_doubled_or_skipp
 
     // two periods on three replicas, then r3 dies
     std::thread::sleep(Duration::from_secs_f64(2.0 * PERIOD_S / SPEEDUP));
-    let r3_fields: HashSet<i64> =
-        rows(pg, &url, "SELECT field_id FROM leases WHERE holder = 'r3'")
-            .iter()
-            .map(|r| r[0].parse().unwrap())
-            .collect();
+    let r3_fields: HashSet<i64> = rows(pg, &url, "SELECT field_id FROM leases WHERE holder = 'r3'")
+        .iter()
+        .map(|r| r[0].parse().unwrap())
+        .collect();
     assert!(!r3_fields.is_empty());
     bases.lock().unwrap()[2] = None;
     let mut r3 = daemons[2].take().unwrap();
