@@ -215,15 +215,6 @@ impl Store {
         }
     }
 
-    /// The connection pool of the PostgreSQL backend (the replicas' leases
-    /// and notifications use it); None on SQLite.
-    pub fn postgres_pool(&self) -> Option<deadpool_postgres::Pool> {
-        match &self.backend {
-            Backend::Sqlite(_) => None,
-            Backend::Postgres(p) => Some(p.pool()),
-        }
-    }
-
     /// Whether the database answers now (a trivial query).
     pub fn ping(&self) -> Result<(), StoreError> {
         dispatch!(self, b => b.ping())
@@ -383,10 +374,6 @@ impl Store {
         dispatch!(self, b => b.estimate(field))
     }
 
-    pub fn put_estimate(&self, field: i64, body: &str) -> Result<(), StoreError> {
-        dispatch!(self, b => b.put_estimate(field, body))
-    }
-
     /// A polled forecast source's state (JSON), by its key.
     pub fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
         dispatch!(self, b => b.forecast_source(key))
@@ -424,63 +411,5 @@ mod tests {
         kept.explanation = "as decided".into();
         let body = serde_json::to_string(&kept).unwrap();
         assert_eq!(setpoint_of(&body).unwrap().explanation, "as decided");
-    }
-
-    fn reading(time: &str, theta: f64) -> Measurement {
-        Measurement {
-            time: time.parse().unwrap(),
-            theta,
-            sensor: None,
-            raw: None,
-            true_theta: None,
-        }
-    }
-
-    #[test]
-    fn a_batch_of_readings_is_stored_each_on_its_own() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
-        let spec = FieldSpec {
-            actuator: crate::service::wire::Actuator::None,
-            simulation: None,
-            ..FieldSpec::demo()
-        };
-        let now = "2026-05-01T12:00:00Z".parse().unwrap();
-        let a = store.create_field(&spec, now).unwrap().id;
-        let b = store
-            .create_field(
-                &FieldSpec {
-                    name: "b".into(),
-                    ..spec.clone()
-                },
-                now,
-            )
-            .unwrap()
-            .id;
-        let t1 = "2026-05-01T10:00:00Z";
-        let t2 = "2026-05-01T11:00:00Z";
-        store.add_measurements(a, &[reading(t1, 0.2)]).unwrap();
-        let outcomes = store
-            .add_readings(&[
-                (a, reading(t1, 0.2)),  // resent
-                (a, reading(t1, 0.25)), // another θ at a stored time
-                (a, reading(t2, 0.21)),
-                (b, reading(t1, 0.3)),
-                (b + 10, reading(t1, 0.3)), // no such field
-            ])
-            .unwrap();
-        assert_eq!(
-            outcomes,
-            [
-                ReadingOutcome::Duplicate,
-                ReadingOutcome::Conflict(0.2),
-                ReadingOutcome::Stored,
-                ReadingOutcome::Stored,
-                ReadingOutcome::NoField,
-            ]
-        );
-        assert_eq!(store.count_measurements(a).unwrap(), 2);
-        assert_eq!(store.count_measurements(b).unwrap(), 1);
-        assert_eq!(store.count_measurements(b + 10).unwrap(), 0);
     }
 }

@@ -180,10 +180,6 @@ impl Postgres {
         Ok(store)
     }
 
-    pub(super) fn pool(&self) -> Pool {
-        self.pool.clone()
-    }
-
     /// Runs `f` with a pooled connection on the backend's runtime and waits
     /// for it, at most [`DEADLINE`].
     fn run<T, F>(&self, f: F) -> Result<T, StoreError>
@@ -836,15 +832,6 @@ impl Postgres {
         self.document(
             "SELECT body FROM estimates WHERE field_id = $1",
             Key::Field(field),
-        )
-    }
-
-    pub(super) fn put_estimate(&self, field: i64, body: &str) -> Result<(), StoreError> {
-        self.put_document(
-            "INSERT INTO estimates(field_id, body) VALUES ($1, $2)
-             ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
-            Key::Field(field),
-            body,
         )
     }
 

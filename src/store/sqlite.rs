@@ -649,18 +649,6 @@ impl Sqlite {
         })
     }
 
-    pub(super) fn put_estimate(&self, field: i64, body: &str) -> Result<(), StoreError> {
-        self.with(|c| {
-            c.execute(
-                "INSERT INTO estimates(field_id, body) VALUES (?1, ?2)
-                 ON CONFLICT(field_id) DO UPDATE SET body = excluded.body",
-                params![field, body],
-            )?;
-            Ok(())
-        })
-    }
-
-    /// A polled forecast source's state (JSON), by its key.
     pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
         self.with(|c| {
             Ok(c.query_row(
