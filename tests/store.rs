@@ -8,9 +8,9 @@ use std::time::{Duration, Instant};
 
 use chrono::{DateTime, TimeDelta, Utc};
 use common::postgres::Postgres;
-use rootzone::service::wire::{Actuator, FieldSpec, Measurement, Setpoint};
+use rootzone::service::wire::{Actuator, FieldSpec, Forecast, Measurement, Setpoint};
 use rootzone::store::{
-    CycleOutputs, CycleRun, Location, ReadingOutcome, Sensors, Store, StoreError,
+    CycleOutputs, CycleQuery, CycleRun, Location, ReadingOutcome, Sensors, Store, StoreError,
 };
 
 /// A fresh store of each backend (the folder keeps SQLite's file alive).
@@ -254,6 +254,136 @@ fn a_boundary_is_committed_once_with_its_estimate_and_setpoint() {
                 )
                 .unwrap(),
             [boundary],
+            "{kind}"
+        );
+    }
+}
+
+fn forecast(issued: DateTime<Utc>, et0: f64) -> Forecast {
+    Forecast {
+        issued_at: issued,
+        start: issued,
+        step_s: 7200.0,
+        et0_mm: vec![et0; 3],
+        precip_mm: vec![0.0; 3],
+    }
+}
+
+#[test]
+fn a_cycle_reads_what_the_separate_reads_give_in_one_read() {
+    for (store, _, _dir) in backends() {
+        let kind = store.kind();
+        let f = store.create_field(&spec("r"), at(NOW)).unwrap().id;
+        let other = store.create_field(&spec("other"), at(NOW)).unwrap().id;
+        let now = at(NOW);
+        // readings every 2 h over 4 days, of two sensors; one after `now`
+        let mut batch = Vec::new();
+        for k in -48..=1 {
+            let t = now + TimeDelta::hours(2 * k);
+            batch.push(Measurement {
+                time: t,
+                ..reading(NOW, 0.2 + 0.001 * k as f64)
+            });
+            batch.push(Measurement {
+                time: t,
+                sensor: Some("deep".into()),
+                ..reading(NOW, 0.25)
+            });
+        }
+        store.add_measurements(f, &batch).unwrap();
+        store.add_measurements(other, &[reading(NOW, 0.3)]).unwrap();
+        for k in -30..=0 {
+            store
+                .add_setpoint(&setpoint(f, now + TimeDelta::hours(2 * k), k as f64))
+                .unwrap();
+            store
+                .put_forecast(f, &forecast(now + TimeDelta::hours(2 * k), 1.0 + k as f64))
+                .unwrap();
+        }
+        store
+            .commit_cycle(&CycleOutputs {
+                setpoint: &setpoint(f, now, 9.0),
+                estimate: Some("{\"e\":1}"),
+                run: None,
+            })
+            .unwrap();
+        store.put_forecast_source("src", "{\"s\":2}").unwrap();
+        let from = now - TimeDelta::hours(36);
+        let before = now - TimeDelta::hours(60);
+        let q = CycleQuery {
+            field: f,
+            now,
+            readings_from: from,
+            readings_limit: 1000,
+            setpoints_from: before,
+            recent: 3,
+            forecasts_from: Some(before),
+            forecast_source: Some("src".into()),
+        };
+        let read = store.cycle_read(&q).unwrap();
+        let readings = store
+            .measurements(f, Some(from), Some(now), 1000, Sensors::All)
+            .unwrap();
+        assert_eq!(read.readings.len(), 2 * 19, "{kind}: 36 h of two sensors");
+        assert_eq!(read.readings, readings, "{kind}");
+        assert_eq!(
+            read.latest_primary,
+            store.measurement_before(f, now).unwrap(),
+            "{kind}"
+        );
+        assert_eq!(read.latest_primary.as_ref().unwrap().time, now, "{kind}");
+        let setpoints = store.setpoints(f, Some(before), None, 10_000).unwrap();
+        assert_eq!(read.setpoints.len(), setpoints.len(), "{kind}");
+        assert_eq!(read.setpoints.len(), 32, "{kind}: 31 cycles and one more");
+        for (a, b) in read.setpoints.iter().zip(&setpoints) {
+            assert_eq!((a.time, a.amount_mm), (b.time, b.amount_mm), "{kind}");
+        }
+        let recent: Vec<f64> = read.recent.iter().map(|s| s.amount_mm).collect();
+        let expected: Vec<f64> = store
+            .recent_setpoints(f, 3)
+            .unwrap()
+            .iter()
+            .map(|s| s.amount_mm)
+            .collect();
+        assert_eq!(recent, expected, "{kind}");
+        assert_eq!(recent.len(), 3, "{kind}");
+        assert_eq!(
+            read.latest_forecast.as_ref().map(|f| f.et0_mm[0]),
+            Some(1.0),
+            "{kind}: the forecast put last"
+        );
+        let forecasts = store.forecasts_since(f, before, 500).unwrap();
+        assert_eq!(read.forecasts.len(), 31, "{kind}");
+        assert_eq!(
+            read.forecasts
+                .iter()
+                .map(|f| f.issued_at)
+                .collect::<Vec<_>>(),
+            forecasts.iter().map(|f| f.issued_at).collect::<Vec<_>>(),
+            "{kind}"
+        );
+        assert_eq!(read.estimate.as_deref(), Some("{\"e\":1}"), "{kind}");
+        assert_eq!(read.forecast_source.as_deref(), Some("{\"s\":2}"), "{kind}");
+        // nothing asked, nothing read; another field's rows are not read
+        let bare = store
+            .cycle_read(&CycleQuery {
+                field: other,
+                forecasts_from: None,
+                forecast_source: None,
+                ..q.clone()
+            })
+            .unwrap();
+        assert_eq!(bare.readings.len(), 1, "{kind}");
+        assert!(
+            bare.setpoints.is_empty() && bare.recent.is_empty(),
+            "{kind}"
+        );
+        assert!(
+            bare.forecasts.is_empty() && bare.latest_forecast.is_none(),
+            "{kind}"
+        );
+        assert!(
+            bare.estimate.is_none() && bare.forecast_source.is_none(),
             "{kind}"
         );
     }

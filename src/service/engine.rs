@@ -16,7 +16,7 @@ use crate::weather::WeatherStep;
 use super::cycle::{
     BIAS_PERIOD, CycleInputs, EstimateView, assimilate, climatology, decide, observed_weather,
 };
-use super::store::{CycleOutputs, CycleRun, Sensors, Store, StoreError};
+use super::store::{CycleOutputs, CycleQuery, CycleRead, CycleRun, Store, StoreError};
 use super::wire::{Actuator, Field, Forecast, Setpoint};
 use crate::estimate::{
     Estimator, EstimatorSettings, EstimatorSnapshot, InitialGuess, Prior, Sensor as EstimatedSensor,
@@ -120,15 +120,13 @@ impl Engine {
         field: &Field,
         now: DateTime<Utc>,
         stored: Option<Forecast>,
+        source_state: Option<&str>,
     ) -> Result<(Option<Forecast>, Option<String>, super::wire::ForecastUsed), EngineError> {
         use crate::adapters::forecast::{SourceState, for_cycle};
         let period = field.spec.control_period_s;
         if let Some(src) = &field.spec.forecast_source {
-            let key = src.key(self.forecasts.location_decimals).id();
-            let state: Option<SourceState> = self
-                .store
-                .forecast_source(&key)?
-                .and_then(|b| serde_json::from_str(&b).ok());
+            let state: Option<SourceState> =
+                source_state.and_then(|b| serde_json::from_str(b).ok());
             let (f, flag, used) = for_cycle(
                 src.provider,
                 state.as_ref(),
@@ -326,35 +324,65 @@ impl Engine {
         }))
     }
 
-    /// Reads what one cycle of `field` at `now` needs, in one go.
-    pub fn load(&self, field: &Field, now: DateTime<Utc>) -> Result<CycleInputs, EngineError> {
+    /// What one cycle of `field` at `now` reads ([`Store::cycle_read`]):
+    /// every reading of the longer of the surrogate window (plus two
+    /// periods) and the estimator's catch-up span; the setpoints and stored
+    /// forecasts from two days before that (the weather and irrigation the
+    /// estimate replays); the latest setpoints for the warm start and bias.
+    fn cycle_query(&self, field: &Field, now: DateTime<Utc>, scenario: bool) -> CycleQuery {
         let period = field.spec.control_period_s;
-        let span = TimeDelta::milliseconds(((WINDOW + 2) as f64 * period * 1000.0) as i64);
-        let mut measurements = self.store.measurements(
-            field.id,
-            Some(now - span),
-            Some(now),
-            100_000,
-            Sensors::Primary,
-        )?;
+        let window = (WINDOW + 2) as f64 * period;
+        let span = self.max_catch_up_s.max(period);
+        let from = super::clock::add_seconds(now, -window.max(span));
+        let before = from - TimeDelta::days(2);
+        CycleQuery {
+            field: field.id,
+            now,
+            readings_from: from,
+            readings_limit: 100_000,
+            setpoints_from: before,
+            recent: WINDOW + BIAS_PERIOD,
+            forecasts_from: (!scenario).then_some(before),
+            forecast_source: field
+                .spec
+                .forecast_source
+                .as_ref()
+                .map(|src| src.key(self.forecasts.location_decimals).id()),
+        }
+    }
+
+    /// The controller's inputs from the cycle's read: the primary sensor's
+    /// readings over the window (or, with none there, its latest one).
+    fn load(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        read: &mut CycleRead,
+        scenario: Option<(super::wire::Scenario, DateTime<Utc>)>,
+    ) -> CycleInputs {
+        let period = field.spec.control_period_s;
+        let window_from = super::clock::add_seconds(now, -((WINDOW + 2) as f64 * period));
+        let mut measurements: Vec<_> = read
+            .readings
+            .iter()
+            .filter(|m| m.sensor.is_none() && m.time >= window_from)
+            .cloned()
+            .collect();
         if measurements.is_empty()
-            && let Some(latest) = self.store.measurement_before(field.id, now)?
+            && let Some(latest) = read.latest_primary.clone()
         {
             measurements.push(latest);
         }
-        let scenario = self.scenario(field)?;
-        Ok(CycleInputs {
+        CycleInputs {
             field: field.clone(),
             now,
-            recent: self
-                .store
-                .recent_setpoints(field.id, WINDOW + BIAS_PERIOD)?,
+            recent: std::mem::take(&mut read.recent),
             measurements,
-            forecast: self.store.latest_forecast(field.id)?,
+            forecast: read.latest_forecast.take(),
             scenario,
             estimate: None,
             degraded: Vec::new(),
-        })
+        }
     }
 
     /// The estimator of a new field: the prior of its declared soil (a
@@ -402,12 +430,18 @@ impl Engine {
     /// prior and flagged `estimator-reset`. Stores the current and the
     /// settled estimate (JSON, for the cycle to store with its setpoint) and
     /// returns what the cycle uses.
-    pub fn estimate(&self, field: &Field, now: DateTime<Utc>) -> Result<Estimated, EngineError> {
+    pub fn estimate(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        read: &CycleRead,
+        scenario: Option<(super::wire::Scenario, DateTime<Utc>)>,
+    ) -> Result<Estimated, EngineError> {
         let period = field.spec.control_period_s;
-        let stored: Option<StoredEstimate> = self
-            .store
-            .estimate(field.id)?
-            .and_then(|body| serde_json::from_str(&body).ok());
+        let stored: Option<StoredEstimate> = read
+            .estimate
+            .as_deref()
+            .and_then(|body| serde_json::from_str(body).ok());
         let restored = stored.and_then(|s| {
             // from the settled state; an estimate stored without one starts
             // from itself. However old it is, the soil it has learnt is
@@ -423,11 +457,10 @@ impl Engine {
             None => {
                 // start from the first primary reading within the catch-up span
                 let from = now - TimeDelta::milliseconds((self.max_catch_up_s * 1e3) as i64);
-                let first = self
-                    .store
-                    .measurements(field.id, Some(from), Some(now), 1, Sensors::Primary)?
-                    .into_iter()
-                    .next();
+                let first = read
+                    .readings
+                    .iter()
+                    .find(|m| m.sensor.is_none() && m.time >= from);
                 let Some(first) = first else {
                     return Ok((None, Vec::new(), None));
                 };
@@ -440,23 +473,26 @@ impl Engine {
         // the readings since, within the catch-up span (older ones would be
         // forecast over nothing and updated on stale weather)
         let span = TimeDelta::milliseconds((self.max_catch_up_s.max(period) * 1e3) as i64);
-        let readings = self.store.measurements(
-            field.id,
-            Some((clock + TimeDelta::milliseconds(1)).max(now - span)),
-            Some(now),
-            100_000,
-            Sensors::All,
-        )?;
-        let setpoints =
-            self.store
-                .setpoints(field.id, Some(clock - TimeDelta::days(2)), None, 10_000)?;
-        let scenario = self.scenario(field)?;
-        let forecasts = match scenario {
-            Some(_) => Vec::new(),
-            None => self
-                .store
-                .forecasts_since(field.id, clock - TimeDelta::days(2), 500)?,
-        };
+        let since = (clock + TimeDelta::milliseconds(1)).max(now - span);
+        let readings: Vec<_> = read
+            .readings
+            .iter()
+            .filter(|m| m.time >= since)
+            .cloned()
+            .collect();
+        let back = clock - TimeDelta::days(2);
+        let setpoints: Vec<_> = read
+            .setpoints
+            .iter()
+            .filter(|s| s.time >= back)
+            .cloned()
+            .collect();
+        let forecasts: Vec<_> = read
+            .forecasts
+            .iter()
+            .filter(|f| f.issued_at >= back)
+            .cloned()
+            .collect();
         let weather_at = |t: DateTime<Utc>| match scenario {
             Some((sc, d0)) => crate::sim::scenario_weather(sc, d0, t),
             None => observed_weather(&forecasts, t),
@@ -542,12 +578,22 @@ impl Engine {
             let n = field.spec.mpc_settings().horizon;
             self.simulated_forecast(field, now, n)?;
         }
-        let mut inputs = self.load(field, now)?;
-        let (forecast, forecast_flag, used) =
-            self.cycle_forecast(field, now, inputs.forecast.take())?;
+        // the one read of the cycle's inputs
+        let scenario = self.scenario(field)?;
+        let mut read = self
+            .store
+            .cycle_read(&self.cycle_query(field, now, scenario.is_some()))?;
+        let mut inputs = self.load(field, now, &mut read, scenario);
+        let (forecast, forecast_flag, used) = self.cycle_forecast(
+            field,
+            now,
+            inputs.forecast.take(),
+            read.forecast_source.as_deref(),
+        )?;
         inputs.forecast = forecast;
         flags.extend(forecast_flag);
-        let (estimate, estimate_flags, estimate_body) = self.estimate(field, now)?;
+        let (estimate, estimate_flags, estimate_body) =
+            self.estimate(field, now, &read, scenario)?;
         flags.extend(estimate_flags);
         inputs.estimate = estimate;
         inputs.degraded = flags;

@@ -149,6 +149,54 @@ pub fn redact(url: &str) -> String {
     }
 }
 
+/// What one control cycle of a field reads: [`Store::cycle_read`].
+#[derive(Debug, Clone)]
+pub struct CycleQuery {
+    pub field: i64,
+    pub now: DateTime<Utc>,
+    /// Readings of every sensor in [readings_from, now], oldest first.
+    pub readings_from: DateTime<Utc>,
+    /// At most this many of them (the oldest).
+    pub readings_limit: usize,
+    /// Setpoints from this time on (the irrigation the estimate replays).
+    pub setpoints_from: DateTime<Utc>,
+    /// The latest this many setpoints (the controller's warm start, bias).
+    pub recent: usize,
+    /// Stored forecasts issued from this time on (the observed weather
+    /// of a field with no scenario); None reads none.
+    pub forecasts_from: Option<DateTime<Utc>>,
+    /// The polled forecast source the field uses, by its key.
+    pub forecast_source: Option<String>,
+}
+
+/// A cycle's inputs, read in one consistent snapshot (one transaction).
+#[derive(Debug, Clone, Default)]
+pub struct CycleRead {
+    /// The stored state estimate (JSON).
+    pub estimate: Option<String>,
+    /// Every sensor's readings in the query's span, oldest first.
+    pub readings: Vec<Measurement>,
+    /// The primary sensor's latest reading at or before `now`, however old.
+    pub latest_primary: Option<Measurement>,
+    /// Setpoints from the query's `setpoints_from`, oldest first (at most
+    /// [`CYCLE_SETPOINTS`]).
+    pub setpoints: Vec<Setpoint>,
+    /// The latest `recent` setpoints, newest first.
+    pub recent: Vec<Setpoint>,
+    /// The forecast put last.
+    pub latest_forecast: Option<Forecast>,
+    /// Forecasts issued from `forecasts_from`, oldest first (at most the
+    /// newest [`CYCLE_FORECASTS`]).
+    pub forecasts: Vec<Forecast>,
+    /// The state of the field's polled forecast source (JSON).
+    pub forecast_source: Option<String>,
+}
+
+/// Most setpoints a cycle reads for its state estimate.
+pub const CYCLE_SETPOINTS: usize = 10_000;
+/// Most stored forecasts a cycle reads for its observed weather.
+pub const CYCLE_FORECASTS: usize = 500;
+
 enum Backend {
     Sqlite(sqlite::Sqlite),
     Postgres(postgres::Postgres),
@@ -332,6 +380,14 @@ impl Store {
     /// lease this replica does not hold, writes nothing: returns false.
     pub fn commit_cycle(&self, out: &CycleOutputs<'_>) -> Result<bool, StoreError> {
         dispatch!(self, b => b.commit_cycle(out))
+    }
+
+    /// Everything one cycle of a field reads, in one consistent read: one
+    /// transaction (a read-only repeatable-read snapshot on PostgreSQL,
+    /// whose statements go out pipelined on one connection; the one
+    /// connection held throughout on SQLite).
+    pub fn cycle_read(&self, query: &CycleQuery) -> Result<CycleRead, StoreError> {
+        dispatch!(self, b => b.cycle_read(query))
     }
 
     /// The boundaries of a field's scheduled cycles that have run, in

@@ -24,7 +24,10 @@ use tokio_postgres::NoTls;
 use tokio_postgres::error::SqlState;
 
 use super::copy::{self, Cell, Kind, Table};
-use super::{CycleOutputs, ReadingOutcome, Sensors, StoreError, millis, setpoint_of, time};
+use super::{
+    CYCLE_FORECASTS, CYCLE_SETPOINTS, CycleOutputs, CycleQuery, CycleRead, ReadingOutcome, Sensors,
+    StoreError, millis, setpoint_of, time,
+};
 use crate::service::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
 
 /// Notified with a field's id when measurements of it are stored.
@@ -539,29 +542,8 @@ impl Postgres {
         limit: usize,
         sensors: Sensors,
     ) -> Result<Vec<Measurement>, StoreError> {
-        let sql = match sensors {
-            Sensors::All => {
-                "SELECT time, theta, sensor, true_theta, raw FROM measurements
-                 WHERE field_id = $1 AND time >= $2 AND time <= $3
-                 ORDER BY time, id LIMIT $4"
-            }
-            Sensors::Primary => {
-                "SELECT time, theta, sensor, true_theta, raw FROM measurements
-                 WHERE field_id = $1 AND time >= $2 AND time <= $3 AND sensor IS NULL
-                 ORDER BY time, id LIMIT $4"
-            }
-        };
-        let (from, to) = (from.map_or(i64::MIN, millis), to.map_or(i64::MAX, millis));
-        let limit = limit.min(i64::MAX as usize) as i64;
         self.run(move |c| {
-            Box::pin(async move {
-                let stmt = c.prepare_cached(sql).await.map_err(pg)?;
-                let rows = c
-                    .query(&stmt, &[&field, &from, &to, &limit])
-                    .await
-                    .map_err(pg)?;
-                Ok(rows.iter().map(measurement_of).collect())
-            })
+            Box::pin(async move { read::measurements(&*c, field, from, to, limit, sensors).await })
         })
     }
 
@@ -570,21 +552,7 @@ impl Postgres {
         field: i64,
         at: DateTime<Utc>,
     ) -> Result<Option<Measurement>, StoreError> {
-        let at = millis(at);
-        self.run(move |c| {
-            Box::pin(async move {
-                let stmt = c
-                    .prepare_cached(
-                        "SELECT time, theta, sensor, true_theta, raw FROM measurements
-                         WHERE field_id = $1 AND time <= $2 AND sensor IS NULL
-                         ORDER BY time DESC, id DESC LIMIT 1",
-                    )
-                    .await
-                    .map_err(pg)?;
-                let row = c.query_opt(&stmt, &[&field, &at]).await.map_err(pg)?;
-                Ok(row.as_ref().map(measurement_of))
-            })
-        })
+        self.run(move |c| Box::pin(async move { read::measurement_before(&*c, field, at).await }))
     }
 
     pub(super) fn count_measurements(&self, field: i64) -> Result<u64, StoreError> {
@@ -619,20 +587,7 @@ impl Postgres {
     }
 
     pub(super) fn latest_forecast(&self, field: i64) -> Result<Option<Forecast>, StoreError> {
-        self.run(move |c| {
-            Box::pin(async move {
-                let stmt = c
-                    .prepare_cached(
-                        "SELECT body FROM forecasts WHERE field_id = $1 ORDER BY id DESC LIMIT 1",
-                    )
-                    .await
-                    .map_err(pg)?;
-                let row = c.query_opt(&stmt, &[&field]).await.map_err(pg)?;
-                Ok(row
-                    .map(|r| serde_json::from_str(r.get::<_, &str>(0)))
-                    .transpose()?)
-            })
-        })
+        self.run(move |c| Box::pin(async move { read::latest_forecast(&*c, field).await }))
     }
 
     pub(super) fn forecasts_since(
@@ -641,24 +596,8 @@ impl Postgres {
         from: DateTime<Utc>,
         limit: usize,
     ) -> Result<Vec<Forecast>, StoreError> {
-        let (from, limit) = (millis(from), limit.min(i64::MAX as usize) as i64);
         self.run(move |c| {
-            Box::pin(async move {
-                let rows = c
-                    .query(
-                        "SELECT body FROM forecasts WHERE field_id = $1 AND issued_at >= $2
-                         ORDER BY id DESC LIMIT $3",
-                        &[&field, &from, &limit],
-                    )
-                    .await
-                    .map_err(pg)?;
-                let mut out: Vec<Forecast> = rows
-                    .iter()
-                    .map(|r| serde_json::from_str(r.get::<_, &str>(0)))
-                    .collect::<Result<_, _>>()?;
-                out.reverse();
-                Ok(out)
-            })
+            Box::pin(async move { read::forecasts_since(&*c, field, from, limit).await })
         })
     }
 
@@ -738,26 +677,8 @@ impl Postgres {
         to: Option<DateTime<Utc>>,
         limit: usize,
     ) -> Result<Vec<Setpoint>, StoreError> {
-        let (from, to) = (from.map_or(i64::MIN, millis), to.map_or(i64::MAX, millis));
-        let limit = limit.min(i64::MAX as usize) as i64;
         self.run(move |c| {
-            Box::pin(async move {
-                let stmt = c
-                    .prepare_cached(
-                        "SELECT body FROM setpoints WHERE field_id = $1 AND time >= $2 AND time <= $3
-                         ORDER BY time, id LIMIT $4",
-                    )
-                    .await
-                    .map_err(pg)?;
-                let rows = c
-                    .query(&stmt, &[&field, &from, &to, &limit])
-                    .await
-                    .map_err(pg)?;
-                Ok(rows
-                    .iter()
-                    .map(|r| setpoint_of(r.get::<_, &str>(0)))
-                    .collect::<Result<_, _>>()?)
-            })
+            Box::pin(async move { read::setpoints(&*c, field, from, to, limit).await })
         })
     }
 
@@ -766,21 +687,85 @@ impl Postgres {
         field: i64,
         n: usize,
     ) -> Result<Vec<Setpoint>, StoreError> {
-        let n = n.min(i64::MAX as usize) as i64;
+        self.run(move |c| Box::pin(async move { read::recent_setpoints(&*c, field, n).await }))
+    }
+
+    /// One cycle's inputs: one read-only repeatable-read transaction, its
+    /// statements sent together (pipelined) on its connection.
+    pub(super) fn cycle_read(&self, q: &CycleQuery) -> Result<CycleRead, StoreError> {
+        let q = q.clone();
         self.run(move |c| {
             Box::pin(async move {
-                let stmt = c
-                    .prepare_cached(
-                        "SELECT body FROM setpoints WHERE field_id = $1
-                         ORDER BY time DESC, id DESC LIMIT $2",
-                    )
+                let tx = c
+                    .build_transaction()
+                    .isolation_level(tokio_postgres::IsolationLevel::RepeatableRead)
+                    .read_only(true)
+                    .start()
                     .await
                     .map_err(pg)?;
-                let rows = c.query(&stmt, &[&field, &n]).await.map_err(pg)?;
-                Ok(rows
-                    .iter()
-                    .map(|r| setpoint_of(r.get::<_, &str>(0)))
-                    .collect::<Result<_, _>>()?)
+                let t = &tx;
+                let forecasts = async {
+                    match q.forecasts_from {
+                        Some(from) => {
+                            read::forecasts_since(t, q.field, from, CYCLE_FORECASTS).await
+                        }
+                        None => Ok(Vec::new()),
+                    }
+                };
+                let source = async {
+                    match &q.forecast_source {
+                        Some(key) => {
+                            read::document(
+                                t,
+                                "SELECT body FROM forecast_sources WHERE key = $1",
+                                key,
+                            )
+                            .await
+                        }
+                        None => Ok(None),
+                    }
+                };
+                let (
+                    estimate,
+                    readings,
+                    latest_primary,
+                    setpoints,
+                    recent,
+                    latest_forecast,
+                    forecasts,
+                    forecast_source,
+                ) = futures_util::try_join!(
+                    read::document(
+                        t,
+                        "SELECT body FROM estimates WHERE field_id = $1",
+                        &q.field
+                    ),
+                    read::measurements(
+                        t,
+                        q.field,
+                        Some(q.readings_from),
+                        Some(q.now),
+                        q.readings_limit,
+                        Sensors::All
+                    ),
+                    read::measurement_before(t, q.field, q.now),
+                    read::setpoints(t, q.field, Some(q.setpoints_from), None, CYCLE_SETPOINTS),
+                    read::recent_setpoints(t, q.field, q.recent),
+                    read::latest_forecast(t, q.field),
+                    forecasts,
+                    source,
+                )?;
+                tx.commit().await.map_err(pg)?;
+                Ok(CycleRead {
+                    estimate,
+                    readings,
+                    latest_primary,
+                    setpoints,
+                    recent,
+                    latest_forecast,
+                    forecasts,
+                    forecast_source,
+                })
             })
         })
     }
@@ -983,5 +968,165 @@ impl Drop for Postgres {
         if let Some(rt) = self.rt.take() {
             rt.shutdown_background();
         }
+    }
+}
+
+/// The reads, on a pooled connection or within a transaction.
+mod read {
+    use chrono::{DateTime, Utc};
+    use deadpool_postgres::GenericClient;
+    use tokio_postgres::types::ToSql;
+
+    use super::{StoreError, measurement_of, millis, pg, setpoint_of};
+    use crate::service::wire::{Forecast, Measurement, Setpoint};
+    use crate::store::Sensors;
+
+    fn count(n: usize) -> i64 {
+        n.min(i64::MAX as usize) as i64
+    }
+
+    pub(super) async fn measurements(
+        c: &impl GenericClient,
+        field: i64,
+        from: Option<DateTime<Utc>>,
+        to: Option<DateTime<Utc>>,
+        limit: usize,
+        sensors: Sensors,
+    ) -> Result<Vec<Measurement>, StoreError> {
+        let sql = match sensors {
+            Sensors::All => {
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = $1 AND time >= $2 AND time <= $3
+                 ORDER BY time, id LIMIT $4"
+            }
+            Sensors::Primary => {
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = $1 AND time >= $2 AND time <= $3 AND sensor IS NULL
+                 ORDER BY time, id LIMIT $4"
+            }
+        };
+        let (from, to) = (from.map_or(i64::MIN, millis), to.map_or(i64::MAX, millis));
+        let stmt = c.prepare_cached(sql).await.map_err(pg)?;
+        let rows = c
+            .query(&stmt, &[&field, &from, &to, &count(limit)])
+            .await
+            .map_err(pg)?;
+        Ok(rows.iter().map(measurement_of).collect())
+    }
+
+    pub(super) async fn measurement_before(
+        c: &impl GenericClient,
+        field: i64,
+        at: DateTime<Utc>,
+    ) -> Result<Option<Measurement>, StoreError> {
+        let stmt = c
+            .prepare_cached(
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = $1 AND time <= $2 AND sensor IS NULL
+                 ORDER BY time DESC, id DESC LIMIT 1",
+            )
+            .await
+            .map_err(pg)?;
+        let row = c
+            .query_opt(&stmt, &[&field, &millis(at)])
+            .await
+            .map_err(pg)?;
+        Ok(row.as_ref().map(measurement_of))
+    }
+
+    pub(super) async fn latest_forecast(
+        c: &impl GenericClient,
+        field: i64,
+    ) -> Result<Option<Forecast>, StoreError> {
+        let stmt = c
+            .prepare_cached(
+                "SELECT body FROM forecasts WHERE field_id = $1 ORDER BY id DESC LIMIT 1",
+            )
+            .await
+            .map_err(pg)?;
+        let row = c.query_opt(&stmt, &[&field]).await.map_err(pg)?;
+        Ok(row
+            .map(|r| serde_json::from_str(r.get::<_, &str>(0)))
+            .transpose()?)
+    }
+
+    pub(super) async fn forecasts_since(
+        c: &impl GenericClient,
+        field: i64,
+        from: DateTime<Utc>,
+        limit: usize,
+    ) -> Result<Vec<Forecast>, StoreError> {
+        let stmt = c
+            .prepare_cached(
+                "SELECT body FROM forecasts WHERE field_id = $1 AND issued_at >= $2
+                 ORDER BY id DESC LIMIT $3",
+            )
+            .await
+            .map_err(pg)?;
+        let rows = c
+            .query(&stmt, &[&field, &millis(from), &count(limit)])
+            .await
+            .map_err(pg)?;
+        let mut out: Vec<Forecast> = rows
+            .iter()
+            .map(|r| serde_json::from_str(r.get::<_, &str>(0)))
+            .collect::<Result<_, _>>()?;
+        out.reverse();
+        Ok(out)
+    }
+
+    pub(super) async fn setpoints(
+        c: &impl GenericClient,
+        field: i64,
+        from: Option<DateTime<Utc>>,
+        to: Option<DateTime<Utc>>,
+        limit: usize,
+    ) -> Result<Vec<Setpoint>, StoreError> {
+        let (from, to) = (from.map_or(i64::MIN, millis), to.map_or(i64::MAX, millis));
+        let stmt = c
+            .prepare_cached(
+                "SELECT body FROM setpoints WHERE field_id = $1 AND time >= $2 AND time <= $3
+                 ORDER BY time, id LIMIT $4",
+            )
+            .await
+            .map_err(pg)?;
+        let rows = c
+            .query(&stmt, &[&field, &from, &to, &count(limit)])
+            .await
+            .map_err(pg)?;
+        Ok(rows
+            .iter()
+            .map(|r| setpoint_of(r.get::<_, &str>(0)))
+            .collect::<Result<_, _>>()?)
+    }
+
+    pub(super) async fn recent_setpoints(
+        c: &impl GenericClient,
+        field: i64,
+        n: usize,
+    ) -> Result<Vec<Setpoint>, StoreError> {
+        let stmt = c
+            .prepare_cached(
+                "SELECT body FROM setpoints WHERE field_id = $1
+                 ORDER BY time DESC, id DESC LIMIT $2",
+            )
+            .await
+            .map_err(pg)?;
+        let rows = c.query(&stmt, &[&field, &count(n)]).await.map_err(pg)?;
+        Ok(rows
+            .iter()
+            .map(|r| setpoint_of(r.get::<_, &str>(0)))
+            .collect::<Result<_, _>>()?)
+    }
+
+    /// One body column of one row, by its key.
+    pub(super) async fn document(
+        c: &impl GenericClient,
+        sql: &str,
+        key: &(dyn ToSql + Sync),
+    ) -> Result<Option<String>, StoreError> {
+        let stmt = c.prepare_cached(sql).await.map_err(pg)?;
+        let row = c.query_opt(&stmt, &[key]).await.map_err(pg)?;
+        Ok(row.map(|r| r.get(0)))
     }
 }

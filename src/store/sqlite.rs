@@ -9,7 +9,10 @@ use chrono::{DateTime, Utc};
 use rusqlite::{Connection, OptionalExtension, params};
 
 use super::copy::{self, Cell, Kind, Table};
-use super::{CycleOutputs, ReadingOutcome, Sensors, StoreError, millis, setpoint_of, time};
+use super::{
+    CYCLE_FORECASTS, CYCLE_SETPOINTS, CycleOutputs, CycleQuery, CycleRead, ReadingOutcome, Sensors,
+    StoreError, millis, setpoint_of, time,
+};
 use crate::service::wire::{Field, FieldSpec, Forecast, Measurement, Setpoint};
 
 /// The schema, one migration per entry; entry i brings the database to
@@ -410,31 +413,7 @@ impl Sqlite {
         limit: usize,
         sensors: Sensors,
     ) -> Result<Vec<Measurement>, StoreError> {
-        let sql = match sensors {
-            Sensors::All => {
-                "SELECT time, theta, sensor, true_theta, raw FROM measurements
-                 WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
-                 ORDER BY time, rowid LIMIT ?4"
-            }
-            Sensors::Primary => {
-                "SELECT time, theta, sensor, true_theta, raw FROM measurements
-                 WHERE field_id = ?1 AND time >= ?2 AND time <= ?3 AND sensor IS NULL
-                 ORDER BY time, rowid LIMIT ?4"
-            }
-        };
-        self.with(|c| {
-            let mut stmt = c.prepare_cached(sql)?;
-            let rows = stmt.query_map(
-                params![
-                    field,
-                    from.map_or(i64::MIN, millis),
-                    to.map_or(i64::MAX, millis),
-                    limit as i64
-                ],
-                measurement_row,
-            )?;
-            Ok(rows.collect::<Result<Vec<_>, _>>()?)
-        })
+        self.with(|c| read::measurements(c, field, from, to, limit, sensors))
     }
 
     /// The primary sensor's latest measurement at or before `at`.
@@ -443,16 +422,7 @@ impl Sqlite {
         field: i64,
         at: DateTime<Utc>,
     ) -> Result<Option<Measurement>, StoreError> {
-        self.with(|c| {
-            Ok(c.query_row(
-                "SELECT time, theta, sensor, true_theta, raw FROM measurements
-                 WHERE field_id = ?1 AND time <= ?2 AND sensor IS NULL
-                 ORDER BY time DESC, rowid DESC LIMIT 1",
-                params![field, millis(at)],
-                measurement_row,
-            )
-            .optional()?)
-        })
+        self.with(|c| read::measurement_before(c, field, at))
     }
 
     pub(super) fn count_measurements(&self, field: i64) -> Result<u64, StoreError> {
@@ -478,15 +448,7 @@ impl Sqlite {
 
     /// The forecast put last.
     pub(super) fn latest_forecast(&self, field: i64) -> Result<Option<Forecast>, StoreError> {
-        let body: Option<String> = self.with(|c| {
-            Ok(c.query_row(
-                "SELECT body FROM forecasts WHERE field_id = ?1 ORDER BY id DESC LIMIT 1",
-                [field],
-                |r| r.get(0),
-            )
-            .optional()?)
-        })?;
-        Ok(body.map(|b| serde_json::from_str(&b)).transpose()?)
+        self.with(|c| read::latest_forecast(c, field))
     }
 
     /// The forecasts issued at or after `from`, oldest first; at most the
@@ -497,19 +459,7 @@ impl Sqlite {
         from: DateTime<Utc>,
         limit: usize,
     ) -> Result<Vec<Forecast>, StoreError> {
-        let mut bodies: Vec<String> = self.with(|c| {
-            let mut stmt = c.prepare_cached(
-                "SELECT body FROM forecasts WHERE field_id = ?1 AND issued_at >= ?2
-                 ORDER BY id DESC LIMIT ?3",
-            )?;
-            let rows = stmt.query_map(params![field, millis(from), limit as i64], |r| r.get(0))?;
-            Ok(rows.collect::<Result<Vec<_>, _>>()?)
-        })?;
-        bodies.reverse();
-        Ok(bodies
-            .iter()
-            .map(|b| serde_json::from_str(b))
-            .collect::<Result<_, _>>()?)
+        self.with(|c| read::forecasts_since(c, field, from, limit))
     }
 
     /// Setpoints in [from, to], oldest first, at most `limit`.
@@ -520,26 +470,7 @@ impl Sqlite {
         to: Option<DateTime<Utc>>,
         limit: usize,
     ) -> Result<Vec<Setpoint>, StoreError> {
-        let bodies: Vec<String> = self.with(|c| {
-            let mut stmt = c.prepare_cached(
-                "SELECT body FROM setpoints WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
-                 ORDER BY time, id LIMIT ?4",
-            )?;
-            let rows = stmt.query_map(
-                params![
-                    field,
-                    from.map_or(i64::MIN, millis),
-                    to.map_or(i64::MAX, millis),
-                    limit as i64
-                ],
-                |r| r.get(0),
-            )?;
-            Ok(rows.collect::<Result<Vec<_>, _>>()?)
-        })?;
-        Ok(bodies
-            .iter()
-            .map(|b| setpoint_of(b))
-            .collect::<Result<_, _>>()?)
+        self.with(|c| read::setpoints(c, field, from, to, limit))
     }
 
     /// The latest `n` setpoints, newest first.
@@ -548,17 +479,54 @@ impl Sqlite {
         field: i64,
         n: usize,
     ) -> Result<Vec<Setpoint>, StoreError> {
-        let bodies: Vec<String> = self.with(|c| {
-            let mut stmt = c.prepare_cached(
-                "SELECT body FROM setpoints WHERE field_id = ?1 ORDER BY time DESC, id DESC LIMIT ?2",
-            )?;
-            let rows = stmt.query_map(params![field, n as i64], |r| r.get(0))?;
-            Ok(rows.collect::<Result<Vec<_>, _>>()?)
-        })?;
-        Ok(bodies
-            .iter()
-            .map(|b| setpoint_of(b))
-            .collect::<Result<_, _>>()?)
+        self.with(|c| read::recent_setpoints(c, field, n))
+    }
+
+    /// One cycle's inputs in one read transaction, with the connection
+    /// held throughout (every write waits for it).
+    pub(super) fn cycle_read(&self, q: &CycleQuery) -> Result<CycleRead, StoreError> {
+        self.with(|c| {
+            let tx = c.transaction()?;
+            let out = CycleRead {
+                estimate: read::document(
+                    &tx,
+                    "SELECT body FROM estimates WHERE field_id = ?1",
+                    q.field,
+                )?,
+                readings: read::measurements(
+                    &tx,
+                    q.field,
+                    Some(q.readings_from),
+                    Some(q.now),
+                    q.readings_limit,
+                    Sensors::All,
+                )?,
+                latest_primary: read::measurement_before(&tx, q.field, q.now)?,
+                setpoints: read::setpoints(
+                    &tx,
+                    q.field,
+                    Some(q.setpoints_from),
+                    None,
+                    CYCLE_SETPOINTS,
+                )?,
+                recent: read::recent_setpoints(&tx, q.field, q.recent)?,
+                latest_forecast: read::latest_forecast(&tx, q.field)?,
+                forecasts: match q.forecasts_from {
+                    Some(from) => read::forecasts_since(&tx, q.field, from, CYCLE_FORECASTS)?,
+                    None => Vec::new(),
+                },
+                forecast_source: match &q.forecast_source {
+                    Some(key) => read::document(
+                        &tx,
+                        "SELECT body FROM forecast_sources WHERE key = ?1",
+                        key,
+                    )?,
+                    None => None,
+                },
+            };
+            tx.commit()?;
+            Ok(out)
+        })
     }
 
     pub(super) fn simulation(&self, field: i64) -> Result<Option<String>, StoreError> {
@@ -639,25 +607,11 @@ impl Sqlite {
 
     /// A field's stored state estimate (JSON).
     pub(super) fn estimate(&self, field: i64) -> Result<Option<String>, StoreError> {
-        self.with(|c| {
-            Ok(c.query_row(
-                "SELECT body FROM estimates WHERE field_id = ?1",
-                [field],
-                |r| r.get(0),
-            )
-            .optional()?)
-        })
+        self.with(|c| read::document(c, "SELECT body FROM estimates WHERE field_id = ?1", field))
     }
 
     pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
-        self.with(|c| {
-            Ok(c.query_row(
-                "SELECT body FROM forecast_sources WHERE key = ?1",
-                [key],
-                |r| r.get(0),
-            )
-            .optional()?)
-        })
+        self.with(|c| read::document(c, "SELECT body FROM forecast_sources WHERE key = ?1", key))
     }
 
     pub(super) fn put_forecast_source(&self, key: &str, body: &str) -> Result<(), StoreError> {
@@ -721,5 +675,154 @@ impl Sqlite {
             tx.commit()?;
             Ok(())
         })
+    }
+}
+
+/// The reads, on a connection or within a transaction (both deref to
+/// `Connection`).
+mod read {
+    use chrono::{DateTime, Utc};
+    use rusqlite::{Connection, OptionalExtension, params};
+
+    use super::{StoreError, measurement_row, millis, setpoint_of};
+    use crate::service::wire::{Forecast, Measurement, Setpoint};
+    use crate::store::Sensors;
+
+    pub(super) fn measurements(
+        c: &Connection,
+        field: i64,
+        from: Option<DateTime<Utc>>,
+        to: Option<DateTime<Utc>>,
+        limit: usize,
+        sensors: Sensors,
+    ) -> Result<Vec<Measurement>, StoreError> {
+        let sql = match sensors {
+            Sensors::All => {
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
+                 ORDER BY time, rowid LIMIT ?4"
+            }
+            Sensors::Primary => {
+                "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = ?1 AND time >= ?2 AND time <= ?3 AND sensor IS NULL
+                 ORDER BY time, rowid LIMIT ?4"
+            }
+        };
+        let mut stmt = c.prepare_cached(sql)?;
+        let rows = stmt.query_map(
+            params![
+                field,
+                from.map_or(i64::MIN, millis),
+                to.map_or(i64::MAX, millis),
+                limit.min(i64::MAX as usize) as i64
+            ],
+            measurement_row,
+        )?;
+        Ok(rows.collect::<Result<Vec<_>, _>>()?)
+    }
+
+    pub(super) fn measurement_before(
+        c: &Connection,
+        field: i64,
+        at: DateTime<Utc>,
+    ) -> Result<Option<Measurement>, StoreError> {
+        Ok(c.prepare_cached(
+            "SELECT time, theta, sensor, true_theta, raw FROM measurements
+                 WHERE field_id = ?1 AND time <= ?2 AND sensor IS NULL
+                 ORDER BY time DESC, rowid DESC LIMIT 1",
+        )?
+        .query_row(params![field, millis(at)], measurement_row)
+        .optional()?)
+    }
+
+    pub(super) fn latest_forecast(
+        c: &Connection,
+        field: i64,
+    ) -> Result<Option<Forecast>, StoreError> {
+        let body: Option<String> = c
+            .prepare_cached(
+                "SELECT body FROM forecasts WHERE field_id = ?1 ORDER BY id DESC LIMIT 1",
+            )?
+            .query_row([field], |r| r.get(0))
+            .optional()?;
+        Ok(body.map(|b| serde_json::from_str(&b)).transpose()?)
+    }
+
+    pub(super) fn forecasts_since(
+        c: &Connection,
+        field: i64,
+        from: DateTime<Utc>,
+        limit: usize,
+    ) -> Result<Vec<Forecast>, StoreError> {
+        let mut stmt = c.prepare_cached(
+            "SELECT body FROM forecasts WHERE field_id = ?1 AND issued_at >= ?2
+             ORDER BY id DESC LIMIT ?3",
+        )?;
+        let rows = stmt.query_map(
+            params![field, millis(from), limit.min(i64::MAX as usize) as i64],
+            |r| r.get::<_, String>(0),
+        )?;
+        let mut bodies = rows.collect::<Result<Vec<_>, _>>()?;
+        bodies.reverse();
+        Ok(bodies
+            .iter()
+            .map(|b| serde_json::from_str(b))
+            .collect::<Result<_, _>>()?)
+    }
+
+    pub(super) fn setpoints(
+        c: &Connection,
+        field: i64,
+        from: Option<DateTime<Utc>>,
+        to: Option<DateTime<Utc>>,
+        limit: usize,
+    ) -> Result<Vec<Setpoint>, StoreError> {
+        let mut stmt = c.prepare_cached(
+            "SELECT body FROM setpoints WHERE field_id = ?1 AND time >= ?2 AND time <= ?3
+             ORDER BY time, id LIMIT ?4",
+        )?;
+        let rows = stmt.query_map(
+            params![
+                field,
+                from.map_or(i64::MIN, millis),
+                to.map_or(i64::MAX, millis),
+                limit.min(i64::MAX as usize) as i64
+            ],
+            |r| r.get::<_, String>(0),
+        )?;
+        let bodies = rows.collect::<Result<Vec<_>, _>>()?;
+        Ok(bodies
+            .iter()
+            .map(|b| setpoint_of(b))
+            .collect::<Result<_, _>>()?)
+    }
+
+    pub(super) fn recent_setpoints(
+        c: &Connection,
+        field: i64,
+        n: usize,
+    ) -> Result<Vec<Setpoint>, StoreError> {
+        let mut stmt = c.prepare_cached(
+            "SELECT body FROM setpoints WHERE field_id = ?1 ORDER BY time DESC, id DESC LIMIT ?2",
+        )?;
+        let rows = stmt.query_map(params![field, n.min(i64::MAX as usize) as i64], |r| {
+            r.get::<_, String>(0)
+        })?;
+        let bodies = rows.collect::<Result<Vec<_>, _>>()?;
+        Ok(bodies
+            .iter()
+            .map(|b| setpoint_of(b))
+            .collect::<Result<_, _>>()?)
+    }
+
+    /// One body column of one row, by its key.
+    pub(super) fn document(
+        c: &Connection,
+        sql: &str,
+        key: impl rusqlite::ToSql,
+    ) -> Result<Option<String>, StoreError> {
+        Ok(c.prepare_cached(sql)?
+            .query_row([key], |r| r.get(0))
+            .optional()?)
     }
 }
