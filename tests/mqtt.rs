@@ -615,3 +615,87 @@ fn a_broker_restart_loses_no_reading_at_qos1() {
         0.0
     );
 }
+
+#[test]
+fn readings_that_arrive_while_the_database_is_away_are_acknowledged_only_once_stored() {
+    // a PostgreSQL server of its own, to stop; the `_on_postgres` twin
+    // would only run this again
+    if common::on_postgres() {
+        return;
+    }
+    let pg = common::postgres::Postgres::start();
+    let url = pg.fresh_database();
+    let dir = tempfile::tempdir().unwrap();
+    let broker = Broker::start(dir.path());
+    let config = mqtt_config(&broker, "", 0.5);
+    let env = [("ROOTZONE_STORAGE__URL", url.as_str())];
+    let mut d = common::start_with(dir.path(), &config, &env);
+    wait_until("the daemon is connected and subscribed", 20, || {
+        metric(&d, "rootzone_mqtt_connected") == 1.0
+    });
+    let id = create_field(&d, json!({"name": "plot", "model": "richards"}));
+    let topic = format!("rootzone/fields/{id}/sensors/default");
+    let sensor = Peer::connect(&broker, "field-node", false, &[]);
+    let t0 = chrono::Utc::now() - chrono::TimeDelta::minutes(50);
+    let reading = |i: usize| {
+        let t = t0 + chrono::TimeDelta::minutes(i as i64);
+        (t, 0.2 + 0.001 * i as f64)
+    };
+    let send = |i: usize| {
+        let (t, theta) = reading(i);
+        sensor.publish(
+            &topic,
+            json!({"time": t.to_rfc3339(), "theta": theta}).to_string(),
+        );
+    };
+    for i in 0..3 {
+        send(i);
+    }
+    wait_until("the first readings are stored", 10, || {
+        measurements(&d, id).len() == 3
+    });
+
+    // 1. the database goes away: readings arrive, wait unacknowledged, and
+    // are stored when it is back
+    pg.kill();
+    for i in 3..6 {
+        send(i);
+    }
+    wait_until("the daemon has received them", 10, || {
+        metric(&d, "rootzone_mqtt_messages_received_total") >= 6.0
+    });
+    std::thread::sleep(Duration::from_secs(2));
+    pg.resume();
+    wait_until("the readings sent while it was away are stored", 30, || {
+        measurements(&d, id).len() == 6
+    });
+
+    // 2. the database goes away and the daemon is killed (-9) with readings
+    // it has received but not stored: the broker still holds them for its
+    // session, and the daemon started again stores them
+    pg.kill();
+    for i in 6..9 {
+        send(i);
+    }
+    wait_until("the daemon has received them too", 10, || {
+        metric(&d, "rootzone_mqtt_messages_received_total") >= 9.0
+    });
+    d.child.kill().unwrap();
+    d.child.wait().unwrap();
+    pg.resume();
+    d = common::start_with(dir.path(), &config, &env);
+    wait_until("the readings of the killed daemon are stored", 30, || {
+        measurements(&d, id).len() == 9
+    });
+    let stored = measurements(&d, id);
+    for (i, m) in stored.iter().enumerate() {
+        let (t, theta) = reading(i);
+        let at: chrono::DateTime<chrono::Utc> = m["time"].as_str().unwrap().parse().unwrap();
+        assert_eq!(at.timestamp_millis(), t.timestamp_millis(), "{m}");
+        assert_eq!(m["theta"].as_f64().unwrap(), theta, "{m}");
+    }
+    for reason in ["unknown-field", "payload"] {
+        let name = format!("rootzone_mqtt_readings_refused_total{{reason=\"{reason}\"}}");
+        assert_eq!(metric(&d, &name), 0.0, "{reason}");
+    }
+}

@@ -55,6 +55,14 @@ pub enum StoreError {
     Conflict(String),
 }
 
+impl StoreError {
+    /// The database could not be reached: the same operation may succeed
+    /// later.
+    pub fn is_unavailable(&self) -> bool {
+        matches!(self, StoreError::Unavailable(_))
+    }
+}
+
 /// Which sensors' measurements a query returns.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Sensors {

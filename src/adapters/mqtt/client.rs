@@ -20,9 +20,18 @@
 //!   Every refusal is counted (`rootzone_mqtt_readings_refused_total` by
 //!   reason) and logged (at most one warning per reason every 10 s), never
 //!   stored, never fatal.
-//! - Acknowledgements are rumqttc's automatic ones, sent on arrival: a
-//!   reading queued but not yet committed when the daemon is killed is
-//!   lost (at most one batch; a graceful shutdown stores the queue first).
+//! - Acknowledgements are manual: a QoS 1 message is acknowledged (PUBACK)
+//!   only after its batch's transaction committed, or once it was refused.
+//!   Every message, refused or not, passes through the ingest queue, so
+//!   the acknowledgements leave in the order the messages arrived (MQTT
+//!   3.1.1 §4.6). A batch the database cannot take (unavailable) is
+//!   retried, waiting 0.5 s doubled up to 5 s, until it is stored or the
+//!   daemon stops; its messages stay unacknowledged meanwhile, so the
+//!   broker keeps them and its in-flight window holds back more. A daemon
+//!   killed before a batch committed has acknowledged none of it: the
+//!   broker delivers it again to the persistent session (at least once; a
+//!   reading that carries its time is then stored once, one stamped on
+//!   arrival gets the time of its second arrival).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -51,6 +60,14 @@ pub struct Mqtt {
     warned: Mutex<HashMap<&'static str, Instant>>,
 }
 
+/// A message for the ingest task: a reading that passed the arrival
+/// checks (`None`: refused on arrival, or not a reading), and the message,
+/// acknowledged once its batch is settled.
+struct Queued {
+    arrival: Option<Arrival>,
+    publish: rumqttc::Publish,
+}
+
 /// A sensor message that passed the arrival checks.
 struct Arrival {
     field: i64,
@@ -75,6 +92,7 @@ impl Mqtt {
         options
             .set_keep_alive(Duration::from_secs_f64(settings.keep_alive_s))
             .set_clean_session(false)
+            .set_manual_acks(true)
             .set_max_packet_size(MAX_PACKET_BYTES, MAX_PACKET_BYTES)
             .set_last_will(LastWill::new(
                 topics.availability(),
@@ -214,7 +232,7 @@ fn state_document(state: &AppState, field: &Field, sp: Option<&Setpoint>) -> Str
 
 /// Runs the connection and the ingest until shutdown.
 pub async fn run(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut eventloop: EventLoop) {
-    let (tx, rx) = mpsc::channel::<Arrival>(mqtt.settings.queue);
+    let (tx, rx) = mpsc::channel::<Queued>(mqtt.settings.queue);
     let ingest = {
         let (state, mqtt) = (state.clone(), mqtt.clone());
         tokio::spawn(async move { ingest_loop(state, mqtt, rx).await })
@@ -258,7 +276,7 @@ pub async fn run(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut eventloop: EventLoop
             }
             Ok(Event::Incoming(Packet::Publish(p))) => {
                 m.mqtt_received.inc();
-                if p.topic == ha_status {
+                let arrival = if p.topic == ha_status {
                     // one republication at a time, however often it is asked for
                     let idle = on_connect.as_ref().is_none_or(|h| h.is_finished());
                     if mqtt.settings.discovery && &p.payload[..] == b"online" && idle {
@@ -267,43 +285,50 @@ pub async fn run(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut eventloop: EventLoop
                             connected(&state, &mqtt, false).await;
                         }));
                     }
-                    continue;
-                }
-                let arrival = mqtt
-                    .topics
-                    .parse_sensor(&p.topic)
-                    .map_err(|e| Refusal::new("topic", e))
-                    .and_then(|t| {
-                        let payload =
-                            super::parse_payload(&p.payload, mqtt.settings.max_payload_bytes)?;
-                        // a retained reading comes again with every new
-                        // subscription: without its own time it would be
-                        // stored again at each reconnect
-                        if p.retain && !matches!(payload, Payload::Json { time: Some(_), .. }) {
-                            return Err(Refusal::new(
-                                "retained",
-                                "a retained reading must carry its time",
-                            ));
-                        }
-                        Ok(Arrival {
-                            field: t.field,
-                            sensor: t.sensor,
-                            payload,
-                            arrived: state.clock.now(),
-                            received: Instant::now(),
-                            topic: p.topic.clone(),
-                        })
-                    });
-                match arrival {
-                    Ok(a) => {
-                        // a full queue holds the loop (and so the broker's
-                        // deliveries) until the ingest catches up
-                        tokio::select! {
-                            r = tx.send(a) => if r.is_err() { break },
-                            _ = shutdown.cancelled() => break,
+                    None
+                } else {
+                    let checked = mqtt
+                        .topics
+                        .parse_sensor(&p.topic)
+                        .map_err(|e| Refusal::new("topic", e))
+                        .and_then(|t| {
+                            let payload =
+                                super::parse_payload(&p.payload, mqtt.settings.max_payload_bytes)?;
+                            // a retained reading comes again with every new
+                            // subscription: without its own time it would be
+                            // stored again at each reconnect
+                            if p.retain && !matches!(payload, Payload::Json { time: Some(_), .. }) {
+                                return Err(Refusal::new(
+                                    "retained",
+                                    "a retained reading must carry its time",
+                                ));
+                            }
+                            Ok(Arrival {
+                                field: t.field,
+                                sensor: t.sensor,
+                                payload,
+                                arrived: state.clock.now(),
+                                received: Instant::now(),
+                                topic: p.topic.clone(),
+                            })
+                        });
+                    match checked {
+                        Ok(a) => Some(a),
+                        Err(r) => {
+                            mqtt.refuse(&state, &p.topic, &r);
+                            None
                         }
                     }
-                    Err(r) => mqtt.refuse(&state, &p.topic, &r),
+                };
+                // a full queue holds the loop (and so the broker's
+                // deliveries) until the ingest catches up
+                let queued = Queued {
+                    arrival,
+                    publish: p,
+                };
+                tokio::select! {
+                    r = tx.send(queued) => if r.is_err() { break },
+                    _ = shutdown.cancelled() => break,
                 }
             }
             Ok(_) => {}
@@ -414,38 +439,79 @@ async fn connected(state: &Arc<AppState>, mqtt: &Mqtt, subscribe: bool) {
 }
 
 /// Takes what has queued (at most `batch_max`), checks and stores it in
-/// one transaction, wakes the fields; until the queue closes.
-async fn ingest_loop(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut rx: mpsc::Receiver<Arrival>) {
+/// one transaction (again, after a wait, while the database is
+/// unavailable), acknowledges its messages in their order, wakes the
+/// fields; until the queue closes or the daemon stops.
+async fn ingest_loop(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut rx: mpsc::Receiver<Queued>) {
     let max = mqtt.settings.batch_max;
+    let shutdown = state.shutdown_token();
     let mut batch = Vec::with_capacity(max);
     while rx.recv_many(&mut batch, max).await > 0 {
-        let taken = std::mem::take(&mut batch);
-        let (s, m) = (state.clone(), mqtt.clone());
-        match tokio::task::spawn_blocking(move || store_batch(&s, &m, taken)).await {
-            Ok(stored) => {
-                for id in stored {
-                    state.measured(id).notify_waiters();
+        let (arrivals, publishes): (Vec<_>, Vec<_>) = std::mem::take(&mut batch)
+            .into_iter()
+            .map(|q| (q.arrival, q.publish))
+            .unzip();
+        let arrivals: Arc<Vec<Arrival>> = Arc::new(arrivals.into_iter().flatten().collect());
+        let mut wait = Duration::from_millis(500);
+        let stored = loop {
+            let (s, m, a) = (state.clone(), mqtt.clone(), arrivals.clone());
+            match tokio::task::spawn_blocking(move || store_batch(&s, &m, &a)).await {
+                Ok(Ok(stored)) => break Some(stored),
+                Ok(Err(e)) if e.is_unavailable() => {
+                    tracing::warn!(error = %e, readings = arrivals.len(), retry_s = wait.as_secs_f64(),
+                        "MQTT ingest: the database is unavailable; the batch waits, unacknowledged");
+                    tokio::select! {
+                        _ = tokio::time::sleep(wait) => {}
+                        // unacknowledged: the broker delivers them again
+                        _ = shutdown.cancelled() => return,
+                    }
+                    wait = (wait * 2).min(Duration::from_secs(5));
+                }
+                Ok(Err(e)) => {
+                    // not a lost connection: trying again would fail again
+                    tracing::error!(error = %e, readings = arrivals.len(), "MQTT ingest: storing failed");
+                    break None;
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "MQTT ingest batch failed");
+                    break None;
                 }
             }
-            Err(e) => tracing::error!(error = %e, "MQTT ingest batch failed"),
+        };
+        for p in &publishes {
+            // the event loop sends it; at shutdown it may no longer run,
+            // and the broker delivers the message again
+            let _ = mqtt.client.try_ack(p);
+        }
+        for id in stored.unwrap_or_default() {
+            state.measured(id).notify_waiters();
         }
     }
 }
 
 /// Checks and stores one batch; returns the fields that got readings.
-fn store_batch(state: &AppState, mqtt: &Mqtt, batch: Vec<Arrival>) -> Vec<i64> {
+fn store_batch(
+    state: &AppState,
+    mqtt: &Mqtt,
+    batch: &[Arrival],
+) -> Result<Vec<i64>, crate::service::store::StoreError> {
     let store = &state.engine.store;
     let skew = state.settings.limits.max_future_skew_s;
     let mut fields: HashMap<i64, Option<Field>> = HashMap::new();
     let mut checked: Vec<(i64, Measurement)> = Vec::with_capacity(batch.len());
     let mut origin: Vec<&Arrival> = Vec::with_capacity(batch.len());
-    for a in &batch {
-        let field = fields
-            .entry(a.field)
-            .or_insert_with(|| store.field(a.field).ok().flatten());
+    // refusals are told once the batch is settled (a batch tried again
+    // would tell them twice)
+    let mut refused: Vec<(&str, Refusal)> = Vec::new();
+    for a in batch {
+        // a database that cannot be read fails the batch (tried again)
+        let field = match fields.entry(a.field) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => e.insert(store.field(a.field)?),
+        };
         let Some(field) = field else {
             let r = Refusal::new("unknown-field", format!("there is no field {}", a.field));
-            mqtt.refuse(state, &a.topic, &r);
+            refused.push((&a.topic, r));
             continue;
         };
         let calibrated = field
@@ -466,16 +532,13 @@ fn store_batch(state: &AppState, mqtt: &Mqtt, batch: Vec<Arrival>) -> Vec<i64> {
                 checked.push((a.field, m));
                 origin.push(a);
             }
-            Err(e) => mqtt.refuse(state, &a.topic, &Refusal::new(e.reason, e.message)),
+            Err(e) => refused.push((&a.topic, Refusal::new(e.reason, e.message))),
         }
     }
-    let outcomes = match store.add_readings(&checked) {
-        Ok(o) => o,
-        Err(e) => {
-            tracing::error!(error = %e, readings = checked.len(), "MQTT ingest: storing failed");
-            return Vec::new();
-        }
-    };
+    let outcomes = store.add_readings(&checked)?;
+    for (topic, r) in &refused {
+        mqtt.refuse(state, topic, r);
+    }
     let m = &state.metrics;
     let mut stored = Vec::new();
     for (((field, reading), outcome), a) in checked.iter().zip(outcomes).zip(origin) {
@@ -514,5 +577,5 @@ fn store_batch(state: &AppState, mqtt: &Mqtt, batch: Vec<Arrival>) -> Vec<i64> {
     }
     stored.sort_unstable();
     stored.dedup();
-    stored
+    Ok(stored)
 }
