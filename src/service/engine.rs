@@ -473,20 +473,11 @@ impl Engine {
         // the readings since, within the catch-up span (older ones would be
         // forecast over nothing and updated on stale weather)
         let span = TimeDelta::milliseconds((self.max_catch_up_s.max(period) * 1e3) as i64);
+        // (both are oldest first: the ones wanted are a tail of each)
         let since = (clock + TimeDelta::milliseconds(1)).max(now - span);
-        let readings: Vec<_> = read
-            .readings
-            .iter()
-            .filter(|m| m.time >= since)
-            .cloned()
-            .collect();
+        let readings = &read.readings[read.readings.partition_point(|m| m.time < since)..];
         let back = clock - TimeDelta::days(2);
-        let setpoints: Vec<_> = read
-            .setpoints
-            .iter()
-            .filter(|s| s.time >= back)
-            .cloned()
-            .collect();
+        let setpoints = &read.setpoints[read.setpoints.partition_point(|s| s.time < back)..];
         let forecasts: Vec<_> = read
             .forecasts
             .iter()
@@ -503,8 +494,8 @@ impl Engine {
             &mut est,
             clock,
             resets,
-            &readings,
-            &setpoints,
+            readings,
+            setpoints,
             &weather_at,
             period,
             self.max_catch_up_s,

@@ -714,14 +714,7 @@ impl Postgres {
                 };
                 let source = async {
                     match &q.forecast_source {
-                        Some(key) => {
-                            read::document(
-                                t,
-                                "SELECT body FROM forecast_sources WHERE key = $1",
-                                key,
-                            )
-                            .await
-                        }
+                        Some(key) => read::document(t, read::FORECAST_SOURCE, key).await,
                         None => Ok(None),
                     }
                 };
@@ -735,11 +728,7 @@ impl Postgres {
                     forecasts,
                     forecast_source,
                 ) = futures_util::try_join!(
-                    read::document(
-                        t,
-                        "SELECT body FROM estimates WHERE field_id = $1",
-                        &q.field
-                    ),
+                    read::document(t, read::ESTIMATE, &q.field),
                     read::measurements(
                         t,
                         q.field,
@@ -814,17 +803,11 @@ impl Postgres {
     }
 
     pub(super) fn estimate(&self, field: i64) -> Result<Option<String>, StoreError> {
-        self.document(
-            "SELECT body FROM estimates WHERE field_id = $1",
-            Key::Field(field),
-        )
+        self.document(read::ESTIMATE, Key::Field(field))
     }
 
     pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
-        self.document(
-            "SELECT body FROM forecast_sources WHERE key = $1",
-            Key::Text(key.to_string()),
-        )
+        self.document(read::FORECAST_SOURCE, Key::Text(key.to_string()))
     }
 
     pub(super) fn put_forecast_source(&self, key: &str, body: &str) -> Result<(), StoreError> {
@@ -980,6 +963,11 @@ mod read {
     use super::{StoreError, measurement_of, millis, pg, setpoint_of};
     use crate::service::wire::{Forecast, Measurement, Setpoint};
     use crate::store::Sensors;
+
+    /// A field's stored state estimate.
+    pub(super) const ESTIMATE: &str = "SELECT body FROM estimates WHERE field_id = $1";
+    /// A polled forecast source's state, by its key.
+    pub(super) const FORECAST_SOURCE: &str = "SELECT body FROM forecast_sources WHERE key = $1";
 
     fn count(n: usize) -> i64 {
         n.min(i64::MAX as usize) as i64

@@ -488,11 +488,7 @@ impl Sqlite {
         self.with(|c| {
             let tx = c.transaction()?;
             let out = CycleRead {
-                estimate: read::document(
-                    &tx,
-                    "SELECT body FROM estimates WHERE field_id = ?1",
-                    q.field,
-                )?,
+                estimate: read::document(&tx, read::ESTIMATE, q.field)?,
                 readings: read::measurements(
                     &tx,
                     q.field,
@@ -516,11 +512,7 @@ impl Sqlite {
                     None => Vec::new(),
                 },
                 forecast_source: match &q.forecast_source {
-                    Some(key) => read::document(
-                        &tx,
-                        "SELECT body FROM forecast_sources WHERE key = ?1",
-                        key,
-                    )?,
+                    Some(key) => read::document(&tx, read::FORECAST_SOURCE, key)?,
                     None => None,
                 },
             };
@@ -607,11 +599,11 @@ impl Sqlite {
 
     /// A field's stored state estimate (JSON).
     pub(super) fn estimate(&self, field: i64) -> Result<Option<String>, StoreError> {
-        self.with(|c| read::document(c, "SELECT body FROM estimates WHERE field_id = ?1", field))
+        self.with(|c| read::document(c, read::ESTIMATE, field))
     }
 
     pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
-        self.with(|c| read::document(c, "SELECT body FROM forecast_sources WHERE key = ?1", key))
+        self.with(|c| read::document(c, read::FORECAST_SOURCE, key))
     }
 
     pub(super) fn put_forecast_source(&self, key: &str, body: &str) -> Result<(), StoreError> {
@@ -687,6 +679,11 @@ mod read {
     use super::{StoreError, measurement_row, millis, setpoint_of};
     use crate::service::wire::{Forecast, Measurement, Setpoint};
     use crate::store::Sensors;
+
+    /// A field's stored state estimate.
+    pub(super) const ESTIMATE: &str = "SELECT body FROM estimates WHERE field_id = ?1";
+    /// A polled forecast source's state, by its key.
+    pub(super) const FORECAST_SOURCE: &str = "SELECT body FROM forecast_sources WHERE key = ?1";
 
     pub(super) fn measurements(
         c: &Connection,
