@@ -698,4 +698,20 @@ fn readings_that_arrive_while_the_database_is_away_are_acknowledged_only_once_st
         let name = format!("rootzone_mqtt_readings_refused_total{{reason=\"{reason}\"}}");
         assert_eq!(metric(&d, &name), 0.0, "{reason}");
     }
+
+    // 3. a graceful stop has acknowledged everything it stored: started
+    // again, the daemon is delivered nothing old
+    d.sigterm();
+    d.child.wait().unwrap();
+    let d = common::start_with(dir.path(), &config, &env);
+    wait_until("the daemon is connected again", 20, || {
+        metric(&d, "rootzone_mqtt_connected") == 1.0
+    });
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(
+        metric(&d, "rootzone_mqtt_messages_received_total"),
+        0.0,
+        "messages delivered again after a graceful stop"
+    );
+    assert_eq!(measurements(&d, id).len(), 9);
 }

@@ -27,7 +27,9 @@
 //!   3.1.1 §4.6). A batch the database cannot take (unavailable) is
 //!   retried, waiting 0.5 s doubled up to 5 s, until it is stored or the
 //!   daemon stops; its messages stay unacknowledged meanwhile, so the
-//!   broker keeps them and its in-flight window holds back more. A daemon
+//!   broker keeps them and its in-flight window holds back more. A stop
+//!   stores the queue and sends its acknowledgements before it
+//!   disconnects. A daemon
 //!   killed before a batch committed has acknowledged none of it: the
 //!   broker delivers it again to the persistent session (at least once; a
 //!   reading that carries its time is then stored once, one stamped on
@@ -351,6 +353,10 @@ pub async fn run(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut eventloop: EventLoop
     if let Some(t) = on_connect.take() {
         t.abort();
     }
+    // the ingest stores what is queued and queues its acknowledgements,
+    // then ends; they go out before the disconnect below
+    drop(tx);
+    let _ = ingest.await;
     // offline, then a clean disconnect (the last will is for crashes);
     // the loop is polled a little so they leave
     m.mqtt_connected.set(0);
@@ -370,9 +376,6 @@ pub async fn run(state: Arc<AppState>, mqtt: Arc<Mqtt>, mut eventloop: EventLoop
         }
     })
     .await;
-    drop(tx);
-    // the ingest stores what is queued, then ends
-    let _ = ingest.await;
 }
 
 /// After a connection (`subscribe`) or Home Assistant's birth message: the
