@@ -174,7 +174,13 @@ pub fn fine_tune(
         let series = get(spec)?;
         let samples = data.push_series(&series.irrigation, &series.measured, &scaling);
         if let Some(level) = plan.window_noise {
-            noisier_windows(&mut data, &series, &scaling, level, seed + 41 + i as u64);
+            noisier_windows(
+                &mut data,
+                &series,
+                &scaling,
+                level,
+                seed.wrapping_add(41 + i as u64),
+            );
         }
         let (a, b) = holdout(&samples, plan.holdout);
         tr.extend(a);
@@ -299,6 +305,51 @@ mod tests {
         for s in training_specs(&plan, &soil, seed) {
             assert_ne!(s.seed, v, "{}", s.name);
         }
+    }
+
+    #[test]
+    fn the_largest_seed_runs_a_job() {
+        // a seed is any u64 a client sends: the seeds derived from it wrap
+        let base = match ModelFile::from_json(
+            include_str!("../../models/two-layer.json"),
+            Path::new("two-layer"),
+        )
+        .unwrap()
+        .model
+        {
+            Surrogate::TwoLayer(t) => t,
+            Surrogate::Single(_) => unreachable!(),
+        };
+        let plan = FineTunePlan {
+            impulse_samples: 300,
+            sub_model_samples: 0,
+            validation_samples: 120,
+            horizon: 5,
+            config: TrainConfig {
+                max_epochs: 1,
+                ..FineTunePlan::default_job().config
+            },
+            ..FineTunePlan::default_job()
+        };
+        assert!(plan.window_noise.is_some(), "the noisy windows are drawn");
+        let dir = tempfile::tempdir().unwrap();
+        let r = fine_tune(
+            &base,
+            "shipped",
+            VanGenuchten::SANDY_LOAM,
+            "sandy-loam",
+            &plan,
+            u64::MAX,
+            dir.path(),
+            |_| {},
+            &|| false,
+        );
+        let tuned = r.unwrap();
+        assert!(
+            tuned.scores.iter().all(|v| v.is_finite()),
+            "{:?}",
+            tuned.scores
+        );
     }
 
     #[test]

@@ -440,7 +440,7 @@ pub fn run_training(
         }
         samples
     };
-    let sub_model_noise_seed = |i: usize| plan.seed + 41 + i as u64;
+    let sub_model_noise_seed = |i: usize| plan.seed.wrapping_add(41 + i as u64);
 
     // 1–2: sub-models
     let mut networks = Vec::new();
@@ -450,7 +450,10 @@ pub fn run_training(
         let series = get(&plan.sub_model_data(i), &mut progress)?;
         let mut data = SequenceData::new(plan.horizon);
         let (tr, va) = split(push_windows(&mut data, &series, sub_model_noise_seed(i)));
-        let mut net = SequenceNet::new(&plan.sub_model_hidden[i], plan.seed + 11 + i as u64);
+        let mut net = SequenceNet::new(
+            &plan.sub_model_hidden[i],
+            plan.seed.wrapping_add(11 + i as u64),
+        );
         let name = ["M1", "M2", "M3"][i];
         let (report, seconds) = fit(
             name,
@@ -484,7 +487,11 @@ pub fn run_training(
     // 3: the single LSTM on the impulse data
     let impulse = get(&plan.impulse_data(), &mut progress)?;
     let mut data = SequenceData::new(plan.horizon);
-    let (tr, va) = split(push_windows(&mut data, &impulse, plan.seed + 44));
+    let (tr, va) = split(push_windows(
+        &mut data,
+        &impulse,
+        plan.seed.wrapping_add(44),
+    ));
     let whole_train = Split {
         data: &data,
         samples: &tr,
@@ -493,7 +500,7 @@ pub fn run_training(
         data: &data,
         samples: &va,
     };
-    let mut single = SequenceNet::new(&plan.single_hidden, plan.seed + 21);
+    let mut single = SequenceNet::new(&plan.single_hidden, plan.seed.wrapping_add(21));
     let (report, seconds) = fit(
         "single LSTM",
         &mut single,
@@ -511,7 +518,7 @@ pub fn run_training(
     ));
 
     // 4: the combiner, in two rounds
-    let mut combiner = Mlp::new(plan.combiner_hidden, plan.seed + 31);
+    let mut combiner = Mlp::new(plan.combiner_hidden, plan.seed.wrapping_add(31));
     let tab_fit = |combiner: &mut Mlp,
                    a: &TabularData,
                    b: &TabularData,
