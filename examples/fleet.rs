@@ -139,6 +139,33 @@ async fn sleep_until_wall(t: DateTime<Utc>) {
     }
 }
 
+/// POSTs each (replica, field, body) as a measurement batch, at most 32 at
+/// a time; returns how many were stored (201).
+async fn post_readings(
+    http: &reqwest::Client,
+    gate: &Arc<Semaphore>,
+    posts: Vec<(String, i64, String)>,
+) -> usize {
+    let mut tasks = Vec::new();
+    for (base, id, body) in posts {
+        let (http, gate) = (http.clone(), gate.clone());
+        tasks.push(tokio::spawn(async move {
+            let _permit = gate.acquire_owned().await.expect("gate");
+            http.post(format!("{base}/v1/fields/{id}/measurements"))
+                .bearer_auth(TOKEN)
+                .body(body)
+                .send()
+                .await
+                .is_ok_and(|r| r.status() == 201)
+        }));
+    }
+    let mut ok = 0;
+    for t in tasks {
+        ok += usize::from(t.await.unwrap_or(false));
+    }
+    ok
+}
+
 #[tokio::main]
 async fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -201,33 +228,26 @@ async fn main() {
     // each field's window of history: a reading at each of the 20
     // boundaries before the first one measured, in one batch per field
     let first = next_boundary(clock.now());
-    let mut tasks = Vec::new();
-    for (k, &id) in ids.iter().enumerate() {
-        let (http, gate) = (http.clone(), gate.clone());
-        let base = bases[k % bases.len()].clone();
-        let readings: Vec<String> = (1..=20)
-            .rev()
-            .map(|j| {
-                let t = first - TimeDelta::seconds(PERIOD_S as i64 * j);
-                let theta = 0.17 + 0.0005 * ((k + j as usize) % 40) as f64;
-                format!("{{\"time\": \"{}\", \"theta\": {theta}}}", t.to_rfc3339())
-            })
-            .collect();
-        let body = format!("[{}]", readings.join(","));
-        tasks.push(tokio::spawn(async move {
-            let _permit = gate.acquire_owned().await.expect("gate");
-            http.post(format!("{base}/v1/fields/{id}/measurements"))
-                .bearer_auth(TOKEN)
-                .body(body)
-                .send()
-                .await
-                .is_ok_and(|r| r.status() == 201)
-        }));
-    }
-    let mut ok = 0;
-    for t in tasks {
-        ok += usize::from(t.await.unwrap_or(false));
-    }
+    let posts = ids
+        .iter()
+        .enumerate()
+        .map(|(k, &id)| {
+            let readings: Vec<String> = (1..=20)
+                .rev()
+                .map(|j| {
+                    let t = first - TimeDelta::seconds(PERIOD_S as i64 * j);
+                    let theta = 0.17 + 0.0005 * ((k + j as usize) % 40) as f64;
+                    format!("{{\"time\": \"{}\", \"theta\": {theta}}}", t.to_rfc3339())
+                })
+                .collect();
+            (
+                bases[k % bases.len()].clone(),
+                id,
+                format!("[{}]", readings.join(",")),
+            )
+        })
+        .collect();
+    let ok = post_readings(&http, &gate, posts).await;
     println!("{ok} fields got a window of 20 readings");
 
     let (db, connection) = tokio_postgres::connect(&url, tokio_postgres::NoTls)
@@ -254,29 +274,19 @@ async fn main() {
         let stamp = b;
         sleep_until_wall(clock.wall(b - TimeDelta::seconds(280))).await;
         let posted = std::time::Instant::now();
-        let mut tasks = Vec::new();
-        for (k, &id) in ids.iter().enumerate() {
-            let (http, gate) = (http.clone(), gate.clone());
-            let base = bases[k % bases.len()].clone();
-            let theta = 0.17 + 0.0005 * ((k + round) % 40) as f64;
-            let body = format!(
-                "[{{\"time\": \"{}\", \"theta\": {theta}}}]",
-                stamp.to_rfc3339()
-            );
-            tasks.push(tokio::spawn(async move {
-                let _permit = gate.acquire_owned().await.expect("gate");
-                http.post(format!("{base}/v1/fields/{id}/measurements"))
-                    .bearer_auth(TOKEN)
-                    .body(body)
-                    .send()
-                    .await
-                    .is_ok_and(|r| r.status() == 201)
-            }));
-        }
-        let mut ok = 0;
-        for t in tasks {
-            ok += usize::from(t.await.unwrap_or(false));
-        }
+        let posts = ids
+            .iter()
+            .enumerate()
+            .map(|(k, &id)| {
+                let theta = 0.17 + 0.0005 * ((k + round) % 40) as f64;
+                let body = format!(
+                    "[{{\"time\": \"{}\", \"theta\": {theta}}}]",
+                    stamp.to_rfc3339()
+                );
+                (bases[k % bases.len()].clone(), id, body)
+            })
+            .collect();
+        let ok = post_readings(&http, &gate, posts).await;
         let late = clock.now() > b;
         println!(
             "boundary {} ({}): {ok} readings posted in {:.1} wall-s{}",

@@ -762,12 +762,11 @@ impl Postgres {
     fn document(&self, sql: &'static str, key: Key) -> Result<Option<String>, StoreError> {
         self.run(move |c| {
             Box::pin(async move {
-                let row = match &key {
-                    Key::Field(id) => c.query_opt(sql, &[id]).await,
-                    Key::Text(k) => c.query_opt(sql, &[k]).await,
-                }
-                .map_err(pg)?;
-                Ok(row.map(|r| r.get(0)))
+                let key: &(dyn tokio_postgres::types::ToSql + Sync) = match &key {
+                    Key::Field(id) => id,
+                    Key::Text(k) => k,
+                };
+                read::document(&*c, sql, key).await
             })
         })
     }

@@ -787,11 +787,7 @@ mod read {
             ],
             |r| r.get::<_, String>(0),
         )?;
-        let bodies = rows.collect::<Result<Vec<_>, _>>()?;
-        Ok(bodies
-            .iter()
-            .map(|b| setpoint_of(b))
-            .collect::<Result<_, _>>()?)
+        setpoints_of(rows.collect::<Result<Vec<_>, _>>()?)
     }
 
     pub(super) fn recent_setpoints(
@@ -805,7 +801,10 @@ mod read {
         let rows = stmt.query_map(params![field, n.min(i64::MAX as usize) as i64], |r| {
             r.get::<_, String>(0)
         })?;
-        let bodies = rows.collect::<Result<Vec<_>, _>>()?;
+        setpoints_of(rows.collect::<Result<Vec<_>, _>>()?)
+    }
+
+    fn setpoints_of(bodies: Vec<String>) -> Result<Vec<Setpoint>, StoreError> {
         Ok(bodies
             .iter()
             .map(|b| setpoint_of(b))

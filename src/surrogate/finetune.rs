@@ -307,10 +307,9 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_largest_seed_runs_a_job() {
-        // a seed is any u64 a client sends: the seeds derived from it wrap
-        let base = match ModelFile::from_json(
+    /// The shipped two-layer network.
+    fn shipped_two_layer() -> TwoLayerNet {
+        match ModelFile::from_json(
             include_str!("../../models/two-layer.json"),
             Path::new("two-layer"),
         )
@@ -319,7 +318,13 @@ mod tests {
         {
             Surrogate::TwoLayer(t) => t,
             Surrogate::Single(_) => unreachable!(),
-        };
+        }
+    }
+
+    #[test]
+    fn the_largest_seed_runs_a_job() {
+        // a seed is any u64 a client sends: the seeds derived from it wrap
+        let base = shipped_two_layer();
         let plan = FineTunePlan {
             impulse_samples: 300,
             sub_model_samples: 0,
@@ -354,16 +359,7 @@ mod tests {
 
     #[test]
     fn a_stop_before_the_start_cancels() {
-        let base = match ModelFile::from_json(
-            include_str!("../../models/two-layer.json"),
-            Path::new("two-layer"),
-        )
-        .unwrap()
-        .model
-        {
-            Surrogate::TwoLayer(t) => t,
-            Surrogate::Single(_) => unreachable!(),
-        };
+        let base = shipped_two_layer();
         let dir = tempfile::tempdir().unwrap();
         let r = fine_tune(
             &base,
