@@ -17,7 +17,7 @@ use super::cycle::{
     BIAS_PERIOD, CycleInputs, EstimateView, assimilate, climatology, decide, observed_weather,
 };
 use super::store::{CycleOutputs, CycleQuery, CycleRead, CycleRun, Store, StoreError};
-use super::wire::{Actuator, Field, Forecast, Setpoint};
+use super::wire::{Actuator, Field, Forecast, Measurement, Setpoint};
 use crate::estimate::{
     Estimator, EstimatorSettings, EstimatorSnapshot, InitialGuess, Prior, Sensor as EstimatedSensor,
 };
@@ -40,6 +40,44 @@ pub struct StoredEstimate {
     /// The estimate after the last reading older than the late window.
     #[serde(default)]
     pub settled: Option<Box<Checkpoint>>,
+    /// The readings assimilated after the settled estimate, up to `time`.
+    /// When the next cycle finds exactly these there and `time` has left
+    /// the late window, it goes on from this estimate instead of replaying
+    /// them from the settled one (the same result: no reading came late).
+    #[serde(default)]
+    pub seen: Option<Seen>,
+}
+
+/// A summary of the readings of a span: how many, and an order-free digest
+/// of their times, sensors and values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Seen {
+    pub count: u64,
+    pub digest: u64,
+}
+
+impl Seen {
+    /// The readings of `readings` in (`after`, `until`].
+    pub fn of(readings: &[Measurement], after: DateTime<Utc>, until: DateTime<Utc>) -> Seen {
+        use std::hash::{Hash, Hasher};
+        let mut seen = Seen {
+            count: 0,
+            digest: 0,
+        };
+        for m in readings
+            .iter()
+            .filter(|m| m.time > after && m.time <= until)
+        {
+            // a fixed-key hasher: the digest is stored and compared later
+            let mut h = std::hash::DefaultHasher::new();
+            m.time.timestamp_micros().hash(&mut h);
+            m.sensor.hash(&mut h);
+            m.theta.to_bits().hash(&mut h);
+            seen.count += 1;
+            seen.digest = seen.digest.wrapping_add(h.finish());
+        }
+        seen
+    }
 }
 
 /// An estimate at a time.
@@ -442,13 +480,22 @@ impl Engine {
             .estimate
             .as_deref()
             .and_then(|body| serde_json::from_str(body).ok());
+        let settle_before = now - TimeDelta::milliseconds((self.late_window_s * 1e3) as i64);
         let restored = stored.and_then(|s| {
-            // from the settled state; an estimate stored without one starts
-            // from itself. However old it is, the soil it has learnt is
-            // kept: a long gap is forecast over its last catch-up span only.
+            // from the settled state, or from the estimate itself when it
+            // has left the late window and no reading came in late since
+            // (see `StoredEstimate::seen`); an estimate stored without
+            // either starts from itself. However old it is, the soil it has
+            // learnt is kept: a long gap is forecast over its last catch-up
+            // span only.
             let (time, snapshot, resets) = match s.settled {
-                Some(c) => (c.time, c.snapshot, c.resets),
-                None => (s.time, s.snapshot, s.resets),
+                Some(c)
+                    if !(s.time <= settle_before
+                        && s.seen == Some(Seen::of(&read.readings, c.time, s.time))) =>
+                {
+                    (c.time, c.snapshot, c.resets)
+                }
+                _ => (s.time, s.snapshot, s.resets),
             };
             Some((Estimator::restore(snapshot).ok()?, time, resets))
         });
@@ -489,7 +536,6 @@ impl Engine {
             None => observed_weather(&forecasts, t),
         };
         let primary = field.spec.effective_sensors()[0].id.clone();
-        let settle_before = now - TimeDelta::milliseconds((self.late_window_s * 1e3) as i64);
         let done = assimilate(
             &mut est,
             clock,
@@ -510,6 +556,7 @@ impl Engine {
             time: done.clock,
             snapshot: est.snapshot(),
             resets: done.resets,
+            seen: Some(Seen::of(&read.readings, settled_time, done.clock)),
             settled: Some(Box::new(Checkpoint {
                 time: settled_time,
                 snapshot: settled_snapshot,
