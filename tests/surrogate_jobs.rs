@@ -164,7 +164,7 @@ fn a_field_trains_uses_rolls_back_and_refuses_its_own_surrogate() {
     assert_eq!(sp["surrogate"], first.as_str(), "{sp}");
 
     // a second job, queued behind another field's (one job at a time) and
-    // cancelled (DELETE); then a third one that succeeds
+    // cancelled (POST …/surrogate/cancel); then a third one that succeeds
     let other = json!({"name": "sandy", "model": "richards"}).to_string();
     let r = curl(&d, "POST", "/v1/fields", Some(&other), Some(TOKEN));
     assert_eq!(r.0, 201, "{}", r.2);
@@ -176,7 +176,13 @@ fn a_field_trains_uses_rolls_back_and_refuses_its_own_surrogate() {
     assert_eq!(r.0, 202, "{}", r.2);
     assert_eq!(json_of(&r.2)["state"], "queued");
     let second = json_of(&r.2)["id"].as_str().unwrap().to_string();
-    let r = curl(&d, "DELETE", &format!("{fp}/surrogate"), None, Some(TOKEN));
+    let r = curl(
+        &d,
+        "POST",
+        &format!("{fp}/surrogate/cancel"),
+        None,
+        Some(TOKEN),
+    );
     assert_eq!(r.0, 202, "{}", r.2);
     let done = wait_job(&d, id, &second);
     assert_eq!(done["state"], "cancelled", "{done}");

@@ -903,8 +903,10 @@ pub fn routes() -> Router<Arc<AppState>> {
     Router::new()
         .route(
             "/v1/fields/{id}/surrogate",
-            post(post_job).get(get_surrogate).delete(delete_job),
+            post(post_job).get(get_surrogate),
         )
+        // a POST, not a DELETE: the cancelled job stays readable
+        .route("/v1/fields/{id}/surrogate/cancel", post(cancel_running))
         .route("/v1/fields/{id}/surrogate/jobs/{job}", get(get_job))
         .route(
             "/v1/fields/{id}/surrogate/jobs/{job}/cancel",
@@ -1027,7 +1029,7 @@ fn cancelled(state: &AppState, field: i64, job: &str) -> ApiResult<Response> {
     }
 }
 
-async fn delete_job(
+async fn cancel_running(
     State(state): State<Arc<AppState>>,
     UrlPath(id): UrlPath<String>,
     headers: HeaderMap,
