@@ -80,7 +80,11 @@ fn a_chain_of_cycles_estimates_as_one_pass_does_with_and_without_late_readings()
         store
             .add_measurements(field.id, std::slice::from_ref(m))
             .unwrap();
-        let s = engine.control_cycle(&field, m.time, None).unwrap().unwrap();
+        let s = engine
+            .control_cycle(&field, m.time, None)
+            .unwrap()
+            .unwrap()
+            .setpoint;
         assert_eq!(s.rate, 0.0, "cycle {k} irrigated a field above its zone");
         if k == 6 {
             store

@@ -604,7 +604,7 @@ impl Engine {
         field: &Field,
         now: DateTime<Utc>,
         run: Option<CycleRun<'_>>,
-    ) -> Result<Option<Setpoint>, EngineError> {
+    ) -> Result<Option<CycleDone>, EngineError> {
         let mut flags = Vec::new();
         if self.plant(field)?.is_some() {
             if let Err(e) = self.advance_plant(field, now) {
@@ -665,6 +665,21 @@ impl Engine {
             estimate: estimate_body.as_deref(),
             run,
         })?;
-        Ok(stored.then_some(setpoint))
+        Ok(stored.then(|| CycleDone {
+            setpoint,
+            previous: inputs.recent.first().cloned(),
+            theta: read.latest_primary.map(|m| m.theta),
+        }))
     }
+}
+
+/// A committed cycle: its setpoint, and what the daemon's metrics need
+/// from the cycle's one read (so that publishing it reads nothing more).
+#[derive(Debug, Clone)]
+pub struct CycleDone {
+    pub setpoint: Setpoint,
+    /// The setpoint this one replaces: the latest before the cycle.
+    pub previous: Option<Setpoint>,
+    /// The primary sensor's latest θ at or before the cycle.
+    pub theta: Option<f64>,
 }

@@ -80,6 +80,8 @@ pub struct AppState {
     pub mqtt: Option<Arc<crate::adapters::mqtt::client::Mqtt>>,
     /// Bounds the control cycles and simulations running at once.
     permits: Arc<Semaphore>,
+    /// When a cycle last stored the clock's time (see [`save_clock`]).
+    clock_saved: Mutex<Option<std::time::Instant>>,
     /// Per field, woken when its measurements are stored (a cycle waiting
     /// for its boundary's measurement).
     measured: Mutex<HashMap<i64, Arc<tokio::sync::Notify>>>,
@@ -331,6 +333,7 @@ impl App {
             running: Mutex::new(std::collections::HashSet::new()),
             rebalance: tokio::sync::Notify::new(),
             permits: Arc::new(Semaphore::new(settings.limits.worker_threads)),
+            clock_saved: Mutex::new(None),
             settings,
             measured: Mutex::new(HashMap::new()),
             field_tasks: Mutex::new(HashMap::new()),
@@ -868,7 +871,7 @@ async fn run_cycle_in(
     scheduled: bool,
     span: tracing::Span,
 ) -> Result<Option<Setpoint>, String> {
-    let _permit = state
+    let permit = state
         .permits
         .clone()
         .acquire_owned()
@@ -886,8 +889,10 @@ async fn run_cycle_in(
         engine.control_cycle(&f, at, run)
     })
     .await;
-    let setpoint = match decided {
-        Ok(Ok(Some(setpoint))) => setpoint,
+    // the permit bounds the cycles' computing, not their publishing
+    drop(permit);
+    let (setpoint, previous, theta) = match decided {
+        Ok(Ok(Some(done))) => (done.setpoint, done.previous, done.theta),
         Ok(Ok(None)) => {
             tracing::info!("this boundary has run already (or the lease ended): not published");
             state.metrics.cycles_refused.inc();
@@ -922,9 +927,7 @@ async fn run_cycle_in(
         .with_label_values(&[label.as_str()])
         .set(setpoint.amount_mm);
     // the setpoint this one replaces has applied all it will
-    if let Ok(latest) = state.engine.store.recent_setpoints(field.id, 2)
-        && let [_, previous] = latest.as_slice()
-    {
+    if let Some(previous) = &previous {
         let mm = water::applied_mm(
             std::slice::from_ref(previous),
             previous.valid_from,
@@ -937,15 +940,10 @@ async fn run_cycle_in(
                 .inc_by(system.cubic_metres(mm));
         }
     }
-    if let Ok(Some(latest)) = state.engine.store.measurement_before(field.id, at) {
-        m.theta
-            .with_label_values(&[label.as_str()])
-            .set(latest.theta);
+    if let Some(theta) = theta {
+        m.theta.with_label_values(&[label.as_str()]).set(theta);
     }
-    let _ = state
-        .engine
-        .store
-        .set_meta("clock", &state.clock.now().to_rfc3339());
+    save_clock(state).await;
     if let Some(mqtt) = state.mqtt.clone() {
         // the state document reads the store: off the executor
         let (s, f, sp) = (state.clone(), field.clone(), setpoint.clone());
@@ -969,6 +967,27 @@ async fn run_cycle_in(
         );
     }
     Ok(Some(setpoint))
+}
+
+/// Least wall time between two cycles' stores of the clock's time.
+const CLOCK_SAVE_INTERVAL: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Stores the clock's time after a cycle, so that an accelerated clock
+/// resumes from about there after a crash (a clean stop stores it again).
+/// At most once per [`CLOCK_SAVE_INTERVAL`]: the fields' cycles of a
+/// boundary share one row, and one write per field would queue them all
+/// on its lock.
+async fn save_clock(state: &Arc<AppState>) {
+    {
+        let mut last = state.clock_saved.lock().unwrap_or_else(|e| e.into_inner());
+        if last.is_some_and(|t| t.elapsed() < CLOCK_SAVE_INTERVAL) {
+            return;
+        }
+        *last = Some(std::time::Instant::now());
+    }
+    let engine = state.engine.clone();
+    let now = state.clock.now().to_rfc3339();
+    let _ = tokio::task::spawn_blocking(move || engine.store.set_meta("clock", &now)).await;
 }
 
 /// Marks a field's cycle as running while it lives.
