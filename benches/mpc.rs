@@ -22,6 +22,7 @@ fn solve(c: &mut Criterion) {
                     .map(|i| if i % 6 == 0 { 3e-6 } else { 0.0 })
                     .collect(),
                 vec![level; 20],
+                (0..20).map(|i| 4.6e-8 * (i % 12) as f64 / 6.0).collect(),
             );
             c.bench_function(&format!("zone-mpc-{name}/{case}"), |b| {
                 b.iter(|| {

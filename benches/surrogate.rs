@@ -11,7 +11,9 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use rootzone::surrogate::{HORIZON, Mlp, Predictor, Scaling, SequenceNet, Surrogate, TwoLayerNet};
+use rootzone::surrogate::{
+    HORIZON, Mlp, Past, Predictor, Scaling, SequenceNet, Surrogate, TwoLayerNet,
+};
 
 fn inputs() -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let past_u = (0..20)
@@ -44,14 +46,29 @@ fn rollout(c: &mut Criterion) {
         let (past_u, past_y, future_u) = inputs();
         let mut other_y = past_y.clone();
         other_y[0] += 0.01;
+        // a diurnal ET0 about 4 mm/day
+        let et0 = |k: usize| 4.6e-8 * (1.0 + (k as f64 * std::f64::consts::PI / 6.0).sin());
+        let past_e: Vec<f64> = (0..20).map(et0).collect();
+        let future_e: Vec<f64> = (20..20 + HORIZON).map(et0).collect();
+        let past = |y| Past {
+            u: &past_u,
+            y,
+            et0: &past_e,
+        };
         for (name, model) in models {
             let mut p = Predictor::new(model, Scaling::default());
             let mut out = vec![0.0; HORIZON];
             let mut jac = vec![0.0; HORIZON * HORIZON];
             c.bench_function(&format!("{name}-h{h}/rollout-20"), |b| {
                 b.iter(|| {
-                    p.predict(&past_u, &past_y, black_box(&future_u), 0.0, &mut out)
-                        .unwrap();
+                    p.predict(
+                        past(&past_y),
+                        black_box(&future_u),
+                        &future_e,
+                        0.0,
+                        &mut out,
+                    )
+                    .unwrap();
                     black_box(out[HORIZON - 1])
                 })
             });
@@ -60,7 +77,7 @@ fn rollout(c: &mut Criterion) {
                 b.iter(|| {
                     flip = !flip;
                     let py = if flip { &past_y } else { &other_y };
-                    p.predict(&past_u, py, black_box(&future_u), 0.0, &mut out)
+                    p.predict(past(py), black_box(&future_u), &future_e, 0.0, &mut out)
                         .unwrap();
                     black_box(out[HORIZON - 1])
                 })
@@ -68,9 +85,9 @@ fn rollout(c: &mut Criterion) {
             c.bench_function(&format!("{name}-h{h}/rollout-20+jacobian"), |b| {
                 b.iter(|| {
                     p.predict_with_jacobian(
-                        &past_u,
-                        &past_y,
+                        past(&past_y),
                         black_box(&future_u),
+                        &future_e,
                         0.0,
                         &mut out,
                         &mut jac,

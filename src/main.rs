@@ -81,7 +81,8 @@ enum Command {
     },
     /// Reproduce one of the paper's experiments (tables as Markdown and CSV, figures as SVG).
     Experiment {
-        /// e1 … e8, or all (E1–E8 and one report).
+        /// e1 … e8, et0 (the weather: ET0 seasons and rain), or all (every
+        /// one and one report).
         id: String,
         /// Folder of the trained model files.
         #[arg(long, default_value = "models")]

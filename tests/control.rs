@@ -224,7 +224,8 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
         let past_y: Vec<f64> = (0..20)
             .map(|i| level + 0.002 * (i as f64 - 10.0) * (rng.random::<f64>() - 0.5))
             .collect();
-        let mut model = SurrogateModel::new(file.predictor(), past_u, past_y);
+        let past_e = (0..20).map(|i| 4.6e-8 * (i % 12) as f64 / 6.0).collect();
+        let mut model = SurrogateModel::new(file.predictor(), past_u, past_y, past_e);
         model.bias = 0.01 * (2.0 * rng.random::<f64>() - 1.0);
         let mut mpc = ZoneMpc::new(settings);
         let cold = mpc.solve(&mut model);
@@ -236,6 +237,7 @@ fn sqp_matches_a_slow_optimiser_on_the_shipped_two_layer_model() {
         model.push(
             cold.plan[0],
             cold.predicted[0] + 0.003 * (2.0 * rng.random::<f64>() - 1.0),
+            4.6e-8,
         );
         let warm = mpc.solve(&mut model);
         let label = format!("problem {problem} (warm)");

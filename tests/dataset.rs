@@ -126,6 +126,8 @@ fn generation_is_seeded_and_cached() {
     for k in 0..back.len() {
         assert!((back.water_content[k] - first.water_content[k]).abs() < 1e-12);
         assert!((back.irrigation[k] - first.irrigation[k]).abs() <= 1e-15 * first.irrigation[k]);
+        assert!((back.et0[k] - first.et0[k]).abs() <= 1e-15 * first.et0[k]);
+        assert!((back.rain[k] - first.rain[k]).abs() <= 1e-15 * first.rain[k]);
     }
     // The second call reads the cache: a marker written into it comes back.
     let text = std::fs::read_to_string(&path).unwrap().replacen(
@@ -144,11 +146,62 @@ fn generation_is_seeded_and_cached() {
     // A corrupt cache entry is an error naming file and line.
     std::fs::write(
         &path,
-        "irrigation_m_per_s,theta,theta_measured\n1,2,3\n1,x,3\n",
+        "irrigation_m_per_s,rain_m_per_s,et0_m_per_s,theta,theta_measured\n1,0,0,2,3\n1,0,0,x,3\n",
     )
     .unwrap();
     match read_series(&path) {
         Err(DatasetError::Malformed { line, .. }) => assert_eq!(line, 3),
         other => panic!("expected a malformed-file error, got {other:?}"),
+    }
+}
+
+#[test]
+fn the_training_weather_spans_et0_from_day_to_day_and_brings_rain() {
+    // 120 days of the whole-range impulse set
+    let s = generate(
+        &spec(
+            Excitation::Impulse {
+                low: 0.12,
+                high: 0.40,
+            },
+            1440,
+            21,
+        ),
+        &FieldSettings::default(),
+        dry().steps(),
+    )
+    .unwrap();
+    let dt = 7200.0;
+    // recording starts 24 steps (two days) in: days are whole 12-step blocks
+    let days: Vec<f64> = s
+        .et0
+        .chunks_exact(12)
+        .map(|d| d.iter().map(|e| e * dt * 1e3).sum::<f64>())
+        .collect();
+    assert_eq!(days.len(), 120);
+    assert!(
+        days.iter().all(|d| (0.5 - 1e-9..=8.0 + 1e-9).contains(d)),
+        "{days:?}"
+    );
+    let (lo, hi) = days
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &d| (a.min(d), b.max(d)));
+    assert!(lo < 1.5 && hi > 7.0, "daily totals {lo}..{hi}");
+    // the diurnal shape of weather-dry: night steps have none, noon most
+    for d in s.et0.chunks_exact(12) {
+        assert_eq!(d[0], 0.0);
+        assert!(d[5] > d[4] && d[4] > d[3] && d[3] > 0.0);
+    }
+    // rain events of 1–20 mm, a few in 120 days, counted in the supply
+    let events = s
+        .rain
+        .iter()
+        .zip(std::iter::once(&0.0).chain(&s.rain))
+        .filter(|(r, before)| **r > 0.0 && **before == 0.0)
+        .count();
+    assert!((10..=80).contains(&events), "{events} rain events");
+    assert!(s.rain.iter().all(|r| *r * dt * 1e3 <= 20.0 + 1e-9));
+    for ((total, u), p) in s.supply().iter().zip(&s.irrigation).zip(&s.rain) {
+        assert_eq!(*total, u + p);
     }
 }

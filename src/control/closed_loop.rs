@@ -9,7 +9,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::soil::{Field, FieldSettings};
-use crate::weather::{WeatherSeries, rate_to_mm};
+use crate::weather::{WeatherSeries, WeatherStep, rate_to_mm};
 
 use super::controller::Controller;
 use super::estimated::EstimatedRichards;
@@ -28,6 +28,10 @@ pub struct ClosedLoopSettings {
     pub forecast_seed: u64,
     /// The zone the violation is scored against (MODEL.md: [0.18, 0.23]).
     pub scoring_zone: (f64, f64),
+    /// The ET0 [mm per step] the controller is told in place of the truth,
+    /// observed and forecast, step by step from the start and repeated
+    /// (a controller blind to the weather's ET0); None tells it the truth.
+    pub told_et0: Option<Vec<f64>>,
 }
 
 impl Default for ClosedLoopSettings {
@@ -38,6 +42,7 @@ impl Default for ClosedLoopSettings {
             forecast_error: 0.0,
             forecast_seed: 0,
             scoring_zone: (0.18, 0.23),
+            told_et0: None,
         }
     }
 }
@@ -208,8 +213,20 @@ pub fn run_closed_loop(
     let horizon = controller.settings().horizon;
     let last = weather.len() - 1;
     let mut records = Vec::with_capacity(settings.steps);
+    // what the controller is told of a step's weather
+    let told = |k: usize, w: WeatherStep| match settings.told_et0.as_deref() {
+        Some(e) if !e.is_empty() => WeatherStep {
+            et0_mm: e[k % e.len()],
+            ..w
+        },
+        _ => w,
+    };
     for step in 0..settings.steps {
-        let forecast = weather.forecast(step, horizon, settings.forecast_error, &mut forecast_rng);
+        let mut forecast =
+            weather.forecast(step, horizon, settings.forecast_error, &mut forecast_rng);
+        for (k, w) in forecast.iter_mut().enumerate() {
+            *w = told(step + k, *w);
+        }
         let decision = controller.decide(&forecast, Some(&field));
         let truth = weather.steps()[step.min(last)];
         let report = field
@@ -220,7 +237,7 @@ pub fn run_closed_loop(
             })?;
         controller.observe(
             decision.setpoint,
-            truth.precip_mm,
+            &told(step, truth),
             report.measured_water_content,
         );
         let solution = decision.solution;
@@ -419,7 +436,7 @@ pub fn run_observed_loop(
         match &mut controller {
             LoopController::Oracle(c) | LoopController::Surrogate(c) => {
                 let primary = own.map_or(readings[0], |k| readings[k]);
-                c.observe(decision.setpoint, truth.precip_mm, primary);
+                c.observe(decision.setpoint, &truth, primary);
                 bias = c.bias();
             }
             LoopController::Estimated(e) => {

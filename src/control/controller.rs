@@ -97,10 +97,11 @@ impl Controller {
         }
     }
 
-    /// Records the last step: `irrigation` applied [m/s], `precip_mm` of
-    /// rain observed over it, `measured` θ at its end. Updates the window and
-    /// refits the bias on the bias-free one-step prediction of that step.
-    pub fn observe(&mut self, irrigation: f64, precip_mm: f64, measured: f64) {
+    /// Records the last step: `irrigation` applied [m/s], the `weather`
+    /// observed over it (rain and ET0), `measured` θ at its end. Updates the
+    /// window and refits the bias on the bias-free one-step prediction of
+    /// that step.
+    pub fn observe(&mut self, irrigation: f64, weather: &WeatherStep, measured: f64) {
         self.observed += 1;
         if measured.is_finite() {
             self.last_measured = Some(measured);
@@ -111,8 +112,12 @@ impl Controller {
             period,
         } = &mut self.model
         {
-            let supply = irrigation + mm_to_rate(precip_mm, self.sampling_time);
+            let supply = irrigation + mm_to_rate(weather.precip_mm, self.sampling_time);
+            let et0 = mm_to_rate(weather.et0_mm, self.sampling_time);
             if measured.is_finite() {
+                // the one-step prediction of the step just observed, under
+                // its observed ET0
+                model.et0 = vec![et0];
                 if let Ok(predicted) = model.one_step(supply) {
                     if residuals.len() == *period {
                         residuals.pop_front();
@@ -120,7 +125,7 @@ impl Controller {
                     residuals.push_back(measured - predicted);
                     model.bias = super::policy::bias(residuals.make_contiguous());
                 }
-                model.push(supply, measured);
+                model.push(supply, measured, et0);
             }
         }
     }
@@ -130,17 +135,18 @@ impl Controller {
     /// without one it falls back to no irrigation and says so.
     pub fn decide(&mut self, forecast: &[WeatherStep], field: Option<&Field>) -> Decision {
         let n = self.mpc.settings.horizon;
-        let rain: Vec<f64> = (0..n)
-            .map(|k| {
-                forecast
-                    .get(k)
-                    .or(forecast.last())
-                    .map_or(0.0, |w| mm_to_rate(w.precip_mm, self.sampling_time))
-            })
-            .collect();
+        let rate = |k: usize, of: fn(&WeatherStep) -> f64| {
+            forecast
+                .get(k)
+                .or(forecast.last())
+                .map_or(0.0, |w| mm_to_rate(of(w), self.sampling_time))
+        };
+        let rain: Vec<f64> = (0..n).map(|k| rate(k, |w| w.precip_mm)).collect();
+        let et0: Vec<f64> = (0..n).map(|k| rate(k, |w| w.et0_mm)).collect();
         let solution = match (&mut self.model, field) {
             (Model::Surrogate { model, .. }, _) => {
                 model.rain = rain;
+                model.et0 = et0;
                 self.mpc.solve(model.as_mut() as &mut dyn PredictionModel)
             }
             (Model::Richards, Some(field)) => {

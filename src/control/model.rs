@@ -3,8 +3,8 @@
 use crate::soil::{
     Column, ColumnState, Crop, Field, Forcing, Integrator, Interrupt, Tolerances, VanGenuchten,
 };
-use crate::surrogate::Predictor;
 use crate::surrogate::evaluate::WINDOW;
+use crate::surrogate::{Past, Predictor};
 use crate::weather::WeatherStep;
 
 /// A prediction failed.
@@ -33,11 +33,11 @@ pub trait PredictionModel: Send {
 /// A surrogate ([`Predictor`]) with its window of applied inputs and measured
 /// outputs and an additive bias correction.
 ///
-/// The surrogates' input is the water supplied at the surface: the weather
-/// enters as the precipitation rate added to the irrigation, in the window
-/// (observed rain) and over the horizon (`rain`, the forecast). ET0 enters
-/// only through the training weather (MODEL.md's dry scenario), on which the
-/// surrogates learnt the daily uptake cycle.
+/// The surrogates' inputs are the water supplied at the surface and the
+/// reference evapotranspiration: the precipitation rate is added to the
+/// irrigation, in the window (observed rain) and over the horizon (`rain`,
+/// the forecast), and ET0 goes beside it, observed in the window (`past_e`)
+/// and forecast over the horizon (`et0`).
 #[derive(Debug, Clone)]
 pub struct SurrogateModel {
     pub predictor: Predictor,
@@ -45,36 +45,58 @@ pub struct SurrogateModel {
     pub past_u: Vec<f64>,
     /// Measured y[t − 20..t].
     pub past_y: Vec<f64>,
+    /// ET0 over the last 20 steps (m/s), oldest first.
+    pub past_e: Vec<f64>,
     pub bias: f64,
     /// Forecast precipitation rate of each horizon step [m/s] (missing
     /// entries count as no rain).
     pub rain: Vec<f64>,
+    /// Forecast ET0 rate of each horizon step [m/s] (missing entries repeat
+    /// the last one given, or the window's last when none is).
+    pub et0: Vec<f64>,
     /// The plan plus the rain, reused between calls.
     supply: Vec<f64>,
+    /// The horizon's ET0, reused between calls.
+    horizon_e: Vec<f64>,
 }
 
 impl SurrogateModel {
-    /// A model whose window is padded with (u = 0, y = `first`), as before 20
-    /// samples exist (MODEL.md §4).
+    /// A model whose window is padded with (u = 0, y = `first`), as before
+    /// 20 samples exist (MODEL.md §4), and ET0 = 0: no supply and no uptake,
+    /// the one weather under which a flat θ is steady.
     pub fn padded(predictor: Predictor, first: f64) -> SurrogateModel {
-        SurrogateModel::new(predictor, vec![0.0; WINDOW], vec![first; WINDOW])
+        SurrogateModel::new(
+            predictor,
+            vec![0.0; WINDOW],
+            vec![first; WINDOW],
+            vec![0.0; WINDOW],
+        )
     }
 
-    /// A model with the given window (supply rates, measured outputs), no
-    /// bias and no rain forecast.
-    pub fn new(predictor: Predictor, past_u: Vec<f64>, past_y: Vec<f64>) -> SurrogateModel {
+    /// A model with the given window (supply rates, measured outputs, ET0
+    /// rates), no bias and no forecast.
+    pub fn new(
+        predictor: Predictor,
+        past_u: Vec<f64>,
+        past_y: Vec<f64>,
+        past_e: Vec<f64>,
+    ) -> SurrogateModel {
         SurrogateModel {
             predictor,
             past_u,
             past_y,
+            past_e,
             bias: 0.0,
             rain: Vec::new(),
+            et0: Vec::new(),
             supply: Vec::new(),
+            horizon_e: Vec::new(),
         }
     }
 
-    /// The supply of a plan: irrigation plus forecast rain.
-    fn supply(&mut self, plan: &[f64]) -> Vec<f64> {
+    /// The supply of a plan (irrigation plus forecast rain) and the
+    /// horizon's ET0, into the reused buffers.
+    fn inputs(&mut self, plan: &[f64]) -> (Vec<f64>, Vec<f64>) {
         let mut supply = std::mem::take(&mut self.supply);
         supply.clear();
         supply.extend(
@@ -82,26 +104,53 @@ impl SurrogateModel {
                 .enumerate()
                 .map(|(k, u)| u + self.rain.get(k).copied().unwrap_or(0.0)),
         );
-        supply
+        let mut e = std::mem::take(&mut self.horizon_e);
+        e.clear();
+        let last = self
+            .et0
+            .last()
+            .or(self.past_e.last())
+            .copied()
+            .unwrap_or(0.0);
+        e.extend((0..plan.len()).map(|k| self.et0.get(k).copied().unwrap_or(last)));
+        (supply, e)
     }
 
-    /// The prediction without the bias of the supply `u` over the next step.
+    /// The prediction without the bias of the supply `u` (rain included)
+    /// over the next step, under the forecast ET0 of that step.
     pub fn one_step(&mut self, u: f64) -> Result<f64, ModelError> {
         let mut out = [0.0];
-        self.predictor
-            .predict(&self.past_u, &self.past_y, &[u], 0.0, &mut out)
-            .map_err(|e| ModelError(e.to_string()))?;
+        let (supply, e) = self.inputs(&[0.0]);
+        let result = self
+            .predictor
+            .predict(
+                Past {
+                    u: &self.past_u,
+                    y: &self.past_y,
+                    et0: &self.past_e,
+                },
+                &[u],
+                &e,
+                0.0,
+                &mut out,
+            )
+            .map_err(|e| ModelError(e.to_string()));
+        self.supply = supply;
+        self.horizon_e = e;
+        result?;
         finite(&out)?;
         Ok(out[0])
     }
 
-    /// Shifts the window by one sample: `u` applied over the last step, `y`
-    /// measured at its end.
-    pub fn push(&mut self, u: f64, y: f64) {
+    /// Shifts the window by one sample: supply `u` and ET0 `e` over the
+    /// last step, `y` measured at its end.
+    pub fn push(&mut self, u: f64, y: f64, e: f64) {
         self.past_u.remove(0);
         self.past_u.push(u);
         self.past_y.remove(0);
         self.past_y.push(y);
+        self.past_e.remove(0);
+        self.past_e.push(e);
     }
 }
 
@@ -114,12 +163,18 @@ fn finite(out: &[f64]) -> Result<(), ModelError> {
 
 impl PredictionModel for SurrogateModel {
     fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
-        let supply = self.supply(plan);
+        let (supply, e) = self.inputs(plan);
+        let past = Past {
+            u: &self.past_u,
+            y: &self.past_y,
+            et0: &self.past_e,
+        };
         let result = self
             .predictor
-            .predict(&self.past_u, &self.past_y, &supply, self.bias, out)
+            .predict(past, &supply, &e, self.bias, out)
             .map_err(|e| ModelError(e.to_string()));
         self.supply = supply;
+        self.horizon_e = e;
         result?;
         finite(out)
     }
@@ -131,12 +186,18 @@ impl PredictionModel for SurrogateModel {
         jac: &mut [f64],
     ) -> Result<(), ModelError> {
         // d(supply)/du = 1: the Jacobian in the supply is the one in u
-        let supply = self.supply(plan);
+        let (supply, e) = self.inputs(plan);
+        let past = Past {
+            u: &self.past_u,
+            y: &self.past_y,
+            et0: &self.past_e,
+        };
         let result = self
             .predictor
-            .predict_with_jacobian(&self.past_u, &self.past_y, &supply, self.bias, out, jac)
+            .predict_with_jacobian(past, &supply, &e, self.bias, out, jac)
             .map_err(|e| ModelError(e.to_string()));
         self.supply = supply;
+        self.horizon_e = e;
         result?;
         finite(out)?;
         finite(jac)

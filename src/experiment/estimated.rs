@@ -201,6 +201,7 @@ pub fn run_case(case: &Case) -> Result<ObservedRun, String> {
         forecast_error: case.forecast_error,
         forecast_seed: case.seed.wrapping_add(1000),
         scoring_zone: (zone.y_low, zone.y_up),
+        told_et0: None,
     };
     let dt = field.sampling_time;
     let surrogate = |text: &str, name: &str| -> Result<ModelFile, String> {

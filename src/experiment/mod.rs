@@ -2,6 +2,7 @@
 
 pub mod closed_loop;
 pub mod estimated;
+pub mod et0;
 pub mod plot;
 pub mod surrogates;
 
@@ -22,13 +23,16 @@ pub enum ExperimentId {
     E6,
     E7,
     E8,
-    /// E1–E8 and one report with every table and figure.
+    /// The weather: ET0 seasons and rain (issue 17).
+    Et0,
+    /// E1–E8, the weather experiment and one report with every table and
+    /// figure.
     All,
 }
 
 impl ExperimentId {
     /// The single experiments, in order.
-    pub const EACH: [ExperimentId; 8] = [
+    pub const EACH: [ExperimentId; 9] = [
         ExperimentId::E1,
         ExperimentId::E2,
         ExperimentId::E3,
@@ -37,6 +41,7 @@ impl ExperimentId {
         ExperimentId::E6,
         ExperimentId::E7,
         ExperimentId::E8,
+        ExperimentId::Et0,
     ];
 
     pub fn name(self) -> &'static str {
@@ -49,6 +54,7 @@ impl ExperimentId {
             ExperimentId::E6 => "e6",
             ExperimentId::E7 => "e7",
             ExperimentId::E8 => "e8",
+            ExperimentId::Et0 => "et0",
             ExperimentId::All => "all",
         }
     }
@@ -66,9 +72,10 @@ impl FromStr for ExperimentId {
             "e6" => Ok(ExperimentId::E6),
             "e7" => Ok(ExperimentId::E7),
             "e8" => Ok(ExperimentId::E8),
+            "et0" => Ok(ExperimentId::Et0),
             "all" => Ok(ExperimentId::All),
             other => Err(ExperimentError::Input(format!(
-                "unknown experiment '{other}' (expected e1 … e8 or all)"
+                "unknown experiment '{other}' (expected e1 … e8, et0 or all)"
             ))),
         }
     }
@@ -141,11 +148,12 @@ pub fn run_experiment(
         ExperimentId::E6 => closed_loop::e6(options),
         ExperimentId::E7 => closed_loop::e7(options),
         ExperimentId::E8 => estimated::e8(options),
+        ExperimentId::Et0 => et0::et0(options),
         ExperimentId::All => all(options),
     }
 }
 
-/// Runs E1–E8 and writes `report.md`: every experiment's table, with its
+/// Runs E1–E8 and the weather experiment and writes `report.md`: every experiment's table, with its
 /// figures inlined (relative links).
 fn all(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> {
     let mut written = Vec::new();

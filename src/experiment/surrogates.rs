@@ -29,7 +29,7 @@ use crate::surrogate::evaluate::WINDOW;
 use crate::surrogate::pipeline::{
     SINGLE_FILE, SUB_MODEL_FILES, TWO_LAYER_FILE, nrmse_scores, training_weather, validation_spec,
 };
-use crate::surrogate::{ModelFile, Predictor};
+use crate::surrogate::{ModelFile, Past, Predictor};
 
 /// The paper's E1 table: NRMSE of M1, M2, M3 at 1, 10, 20 steps.
 pub const PAPER_E1: [[f64; 3]; 3] = [
@@ -89,15 +89,20 @@ fn traces(predictor: &mut Predictor, series: &Series, from: usize, len: usize) -
         vec![f64::NAN; len],
     ];
     let mut pred = vec![0.0; 20];
+    let supply = series.supply();
     for origin in (from + 1).saturating_sub(20).max(WINDOW)..from + len {
         if origin + 20 > series.len() {
             break;
         }
         let ok = predictor
             .predict(
-                &series.irrigation[origin - WINDOW..origin],
-                &series.measured[origin - WINDOW..origin],
-                &series.irrigation[origin..origin + 20],
+                Past {
+                    u: &supply[origin - WINDOW..origin],
+                    y: &series.measured[origin - WINDOW..origin],
+                    et0: &series.et0[origin - WINDOW..origin],
+                },
+                &supply[origin..origin + 20],
+                &series.et0[origin..origin + 20],
                 0.0,
                 &mut pred,
             )
@@ -291,6 +296,7 @@ pub fn corrected_mae(
     let mut last_one_step: Option<f64> = None;
     let (mut sum, mut count) = (0.0, 0usize);
     let mut trace = vec![f64::NAN; series.len()];
+    let supply = series.supply();
     for t in WINDOW..series.len().saturating_sub(N - 1) {
         // the newest measurement y(t − 1) against its one-step prediction
         if let (Some(state), Some(p)) = (state.as_mut(), last_one_step) {
@@ -298,9 +304,13 @@ pub fn corrected_mae(
         }
         if predictor
             .predict(
-                &series.irrigation[t - WINDOW..t],
-                &series.measured[t - WINDOW..t],
-                &series.irrigation[t..t + N],
+                Past {
+                    u: &supply[t - WINDOW..t],
+                    y: &series.measured[t - WINDOW..t],
+                    et0: &series.et0[t - WINDOW..t],
+                },
+                &supply[t..t + N],
+                &series.et0[t..t + N],
                 0.0,
                 &mut pred,
             )

@@ -232,8 +232,8 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             } else {
                 &models.two_layer
             };
-            let (past_u, past_y) = window(inputs, theta);
-            let mut model = SurrogateModel::new(file.predictor(), past_u, past_y);
+            let (past_u, past_y, past_e) = window(inputs, theta);
+            let mut model = SurrogateModel::new(file.predictor(), past_u, past_y, past_e);
             // bias: mean over the last f cycles of y(t) − ŷ(t | t − 1)
             let mut residuals = Vec::new();
             for s in recent
@@ -251,6 +251,10 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             bias = policy::bias(&residuals);
             model.bias = bias;
             model.rain = rain_rate.clone();
+            model.et0 = weather
+                .iter()
+                .map(|w| mm_to_rate(w.et0_mm, period))
+                .collect();
             let sol = mpc.solve(&mut model);
             dry = without_irrigation(&mut model, n, cancel);
             one_step = Some(model);
@@ -516,12 +520,24 @@ fn measured_samples(inputs: &CycleInputs) -> usize {
 /// θ measured at its end. Before the first measurement the window is
 /// synthesised from the state estimate ([`synthesised_history`]); without
 /// an estimate it is padded with the first θ and no supply.
-fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>) {
+fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let (now, recent) = (inputs.now, &inputs.recent);
     let period = inputs.field.spec.control_period_s;
     let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
     let mut past_u = vec![0.0; WINDOW];
     let mut past_y: Vec<Option<f64>> = vec![None; WINDOW];
+    // ET0 over each sample: a simulated field's scenario, else the stored
+    // forecast nearest it (the climatology when none covers it)
+    let mut past_e: Vec<f64> = (0..WINDOW)
+        .map(|k| {
+            let mid = now - period_d * (WINDOW - 1 - k) as i32 - period_d / 2;
+            let w = match inputs.scenario {
+                Some((sc, d0)) => scenario_weather(sc, d0, mid),
+                None => observed_weather(inputs.forecast.as_slice(), mid),
+            };
+            mm_to_rate(w.et0_mm, SCENARIO_STEP)
+        })
+        .collect();
     for k in 0..WINDOW {
         // sample k ends at now − (WINDOW − 1 − k) periods
         let end = now - period_d * (WINDOW - 1 - k) as i32;
@@ -595,20 +611,22 @@ fn window(inputs: &CycleInputs, current: f64) -> (Vec<f64>, Vec<f64>) {
             last = v.unwrap_or(last);
             y.push(last);
         }
-        return (past_u, y);
+        return (past_u, y, past_e);
     }
     let mut y = Vec::with_capacity(WINDOW);
     let mut last = first_y;
     for (k, v) in past_y.iter().enumerate() {
         if k < first {
+            // the padding: no supply, no uptake, a flat θ (MODEL.md §4)
             past_u[k] = 0.0;
+            past_e[k] = 0.0;
             y.push(first_y);
         } else {
             last = v.unwrap_or(last);
             y.push(last);
         }
     }
-    (past_u, y)
+    (past_u, y, past_e)
 }
 
 /// A past consistent with the estimate, for the samples before the first
@@ -1066,12 +1084,24 @@ mod tests {
         let mut i = inputs(ModelKind::TwoLayer);
         i.measurements = vec![reading("2026-06-02T12:00:00Z", 0.2)];
         // no estimate: the documented padding, flat and without supply
-        let (u, y) = window(&i, 0.2);
+        let (u, y, e) = window(&i, 0.2);
         assert!(u.iter().all(|v| *v == 0.0) && y.iter().all(|v| *v == 0.2));
+        // the padded samples have no ET0 either; the last, measured one has
+        // the climatology's at its middle (no forecast stored)
+        assert!(e[..WINDOW - 1].iter().all(|v| *v == 0.0), "{e:?}");
+        let mid = i.now - TimeDelta::hours(1);
+        let want = mm_to_rate(climatology(mid, SCENARIO_STEP).et0_mm, SCENARIO_STEP);
+        assert_eq!(e[WINDOW - 1], want);
         // with one: the estimated column's own dry-down, ending at the reading
         i.estimate = Some(view_at(0.2));
-        let (u, y) = window(&i, 0.2);
+        let (u, y, e) = window(&i, 0.2);
         assert_eq!((u.len(), y.len()), (WINDOW, WINDOW));
+        // a synthesised past has its weather's ET0 at every sample
+        for (k, e) in e.iter().enumerate() {
+            let mid = i.now - TimeDelta::hours(2 * (WINDOW - 1 - k) as i64) - TimeDelta::hours(1);
+            let want = mm_to_rate(climatology(mid, SCENARIO_STEP).et0_mm, SCENARIO_STEP);
+            assert_eq!(*e, want, "sample {k}");
+        }
         assert_eq!(y[WINDOW - 1], 0.2);
         let weather: Vec<WeatherStep> = (0..WINDOW)
             .map(|k| climatology(i.now - TimeDelta::hours(2 * (WINDOW - k) as i64), 7200.0))

@@ -12,10 +12,16 @@
 //! * **impulse** (M_A and the single LSTM, the whole range): dry spells of random
 //!   length broken by short irrigation pulses of random size, with the same guard.
 //!
-//! The weather during generation is the diurnal ET0 of `weather-dry` (4 mm/day,
-//! no rain), repeated. The output noise of MODEL.md §2 (uniform, ±fraction ×
-//! the output range of the set) is added afterwards; the noise-free output is
-//! kept for scoring.
+//! The weather is drawn too, so that the networks learn what ET0 and rain do:
+//! every day's ET0 total is drawn from Uniform(0.5, 8) mm/day and spread over
+//! the day with the diurnal shape of the given weather (`weather-dry`); a
+//! step starts a rain event with probability 1/48 (about one every four
+//! days), of Uniform(1, 20) mm over one or two steps, when the output is in
+//! the lower half of the set's range (so that the rain does not carry it out
+//! of the range). The networks' input is the supply, irrigation plus rain
+//! ([`Series::supply`]), beside ET0. The output noise of MODEL.md §2
+//! (uniform, ±fraction × the output range of the set) is added afterwards;
+//! the noise-free output is kept for scoring.
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -55,11 +61,15 @@ pub struct DatasetSpec {
     pub seed: u64,
 }
 
-/// A generated series: the input applied over each step and the output after it.
+/// A generated series: the inputs over each step and the output after it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Series {
     /// Irrigation rate applied over step k [m/s].
     pub irrigation: Vec<f64>,
+    /// Precipitation rate over step k [m/s].
+    pub rain: Vec<f64>,
+    /// Reference evapotranspiration rate over step k [m/s].
+    pub et0: Vec<f64>,
     /// Noise-free water content after step k.
     pub water_content: Vec<f64>,
     /// The same with the output noise added.
@@ -67,6 +77,16 @@ pub struct Series {
 }
 
 impl Series {
+    /// The water supplied at the surface over each step, irrigation plus
+    /// rain [m/s]: the surrogates' input.
+    pub fn supply(&self) -> Vec<f64> {
+        self.irrigation
+            .iter()
+            .zip(&self.rain)
+            .map(|(u, p)| u + p)
+            .collect()
+    }
+
     pub fn len(&self) -> usize {
         self.irrigation.len()
     }
@@ -100,6 +120,29 @@ impl Series {
 const WARM_UP: usize = 24;
 /// Largest irrigation rate the signals use [m/s] (u_max of MODEL.md §4).
 const MAX_RATE: f64 = 1e-5;
+/// Range of the daily ET0 totals drawn [mm/day].
+pub const ET0_RANGE_MM_DAY: (f64, f64) = (0.5, 8.0);
+/// Chance that a step starts a rain event.
+const RAIN_CHANCE: f64 = 1.0 / 48.0;
+/// Range of a rain event's total [mm].
+const RAIN_RANGE_MM: (f64, f64) = (1.0, 20.0);
+
+/// The diurnal shape of `weather`'s ET0: each step's share of its day
+/// times the steps per day (mean 1), the day being `steps_per_day` steps;
+/// flat when the weather has no ET0.
+fn diurnal_shape(weather: &[WeatherStep], steps_per_day: usize) -> Vec<f64> {
+    let day: Vec<f64> = (0..steps_per_day)
+        .map(|j| weather.get(j).map_or(0.0, |w| w.et0_mm.max(0.0)))
+        .collect();
+    let total: f64 = day.iter().sum();
+    if total > 0.0 && total.is_finite() {
+        day.iter()
+            .map(|e| e * steps_per_day as f64 / total)
+            .collect()
+    } else {
+        vec![1.0; steps_per_day]
+    }
+}
 
 /// Generates a series with the simulator of `settings` (its noise settings are
 /// ignored: the series carries output noise only, as MODEL.md §3 asks).
@@ -126,13 +169,38 @@ pub fn generate(
     let total = WARM_UP + spec.samples;
     let mut series = Series {
         irrigation: Vec::with_capacity(spec.samples),
+        rain: Vec::with_capacity(spec.samples),
+        et0: Vec::with_capacity(spec.samples),
         water_content: Vec::with_capacity(spec.samples),
         measured: Vec::with_capacity(spec.samples),
     };
+    // the weather has a stream of its own, so the signal stays the same
+    // draw for draw whatever the weather does
+    let mut sky = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x5eed_e7a0_0000_0001);
+    let steps_per_day = ((86_400.0 / dt).round() as usize).max(1);
+    let shape = diurnal_shape(weather, steps_per_day);
+    let mut day_rate = 0.0;
+    let mut raining = (0usize, 0.0);
     let mut theta = field.water_content();
     let mut level = 0.0;
     let mut hold = 0usize;
     for k in 0..total {
+        if k % steps_per_day == 0 {
+            let (lo, hi) = ET0_RANGE_MM_DAY;
+            day_rate = sky.random_range(lo..hi) * 1e-3 / 86_400.0;
+        }
+        let et0 = day_rate * shape[k % steps_per_day];
+        if raining.0 == 0 && sky.random::<f64>() < RAIN_CHANCE && theta < 0.5 * (low + high) {
+            let steps = sky.random_range(1..=2usize);
+            let mm = sky.random_range(RAIN_RANGE_MM.0..RAIN_RANGE_MM.1);
+            raining = (steps, mm * 1e-3 / (steps as f64 * dt));
+        }
+        let rain = if raining.0 > 0 {
+            raining.0 -= 1;
+            raining.1
+        } else {
+            0.0
+        };
         if hold == 0 {
             (level, hold) = match spec.excitation {
                 Excitation::MultiLevel { .. } => {
@@ -166,14 +234,16 @@ pub fn generate(
             level
         };
         hold -= 1;
-        let w = &weather[k % weather.len()];
         let forcing = Forcing {
             irrigation: rate,
-            ..w.forcing(0.0, dt)
+            reference_et: et0,
+            precipitation: rain,
         };
         theta = field.step(forcing)?.water_content;
         if k >= WARM_UP {
             series.irrigation.push(rate);
+            series.rain.push(rain);
+            series.et0.push(et0);
             series.water_content.push(theta);
         }
     }
@@ -212,7 +282,7 @@ pub enum DatasetError {
 }
 
 /// Version of the generator: part of the cache key, bumped when the signals change.
-const GENERATOR_VERSION: u32 = 1;
+const GENERATOR_VERSION: u32 = 2;
 
 impl DatasetSpec {
     /// File name of the cached series: every setting that changes the data is in it.
@@ -250,11 +320,16 @@ pub fn load_or_generate(
         source,
     };
     std::fs::create_dir_all(cache_dir).map_err(|e| io("create the folder of", e))?;
-    let mut text = String::from("irrigation_m_per_s,theta,theta_measured\n");
+    let mut text =
+        String::from("irrigation_m_per_s,rain_m_per_s,et0_m_per_s,theta,theta_measured\n");
     for k in 0..series.len() {
         text.push_str(&format!(
-            "{:e},{:e},{:e}\n",
-            series.irrigation[k], series.water_content[k], series.measured[k]
+            "{:e},{:e},{:e},{:e},{:e}\n",
+            series.irrigation[k],
+            series.rain[k],
+            series.et0[k],
+            series.water_content[k],
+            series.measured[k]
         ));
     }
     let tmp = path.with_extension("csv.tmp");
@@ -273,6 +348,8 @@ pub fn read_series(path: &std::path::Path) -> Result<Series, DatasetError> {
     })?;
     let mut series = Series {
         irrigation: vec![],
+        rain: vec![],
+        et0: vec![],
         water_content: vec![],
         measured: vec![],
     };
@@ -280,18 +357,20 @@ pub fn read_series(path: &std::path::Path) -> Result<Series, DatasetError> {
         let values: Result<Vec<f64>, _> = line.split(',').map(str::parse::<f64>).collect();
         match values
             .ok()
-            .filter(|v| v.len() == 3 && v.iter().all(|x| x.is_finite()))
+            .filter(|v| v.len() == 5 && v.iter().all(|x| x.is_finite()))
         {
             Some(v) => {
                 series.irrigation.push(v[0]);
-                series.water_content.push(v[1]);
-                series.measured.push(v[2]);
+                series.rain.push(v[1]);
+                series.et0.push(v[2]);
+                series.water_content.push(v[3]);
+                series.measured.push(v[4]);
             }
             None => {
                 return Err(DatasetError::Malformed {
                     path: shown,
                     line: index + 1,
-                    message: format!("expected three finite numbers, got '{line}'"),
+                    message: format!("expected five finite numbers, got '{line}'"),
                 });
             }
         }

@@ -2,6 +2,7 @@
 //! predictions from noisy windows, scored against the noise-free output.
 
 use super::dataset::Series;
+use super::rollout::Past;
 
 /// Length of the input window p.
 pub const WINDOW: usize = 20;
@@ -9,16 +10,18 @@ pub const WINDOW: usize = 20;
 /// NRMSE = RMSE/(y_max − y_min) of recursive predictions at each horizon in
 /// `horizons` (1-based steps ahead), over every `stride`-th start of `series`.
 ///
-/// `predict(past_u, past_y, future_u)` gets the last [`WINDOW`] inputs and noisy
-/// outputs before the start t (pairs (u[k], y[k]): y[k] is the output after u[k]
-/// was applied over step k) and the inputs u[t..t+H]; it returns ŷ[0..H], its
-/// predictions of y[t..t+H]. The range is that of the noise-free output.
+/// `predict(past, future_u, future_et0)` gets the last [`WINDOW`] supplies
+/// (irrigation + rain), noisy outputs and ET0 rates before the start t (y[k]
+/// is the output after u[k] was applied over step k) and the supplies and
+/// ET0 of t..t+H; it returns ŷ[0..H], its predictions of y[t..t+H]. The
+/// range is that of the noise-free output.
 pub fn recursive_nrmse(
     series: &Series,
     horizons: &[usize],
     stride: usize,
-    mut predict: impl FnMut(&[f64], &[f64], &[f64]) -> Vec<f64>,
+    mut predict: impl FnMut(Past<'_>, &[f64], &[f64]) -> Vec<f64>,
 ) -> Vec<f64> {
+    let supply = series.supply();
     let longest = horizons.iter().copied().max().unwrap_or(1);
     let y = &series.water_content;
     let (min, max) = y
@@ -31,9 +34,13 @@ pub fn recursive_nrmse(
     let mut t = WINDOW;
     while t + longest <= series.len() {
         let predicted = predict(
-            &series.irrigation[t - WINDOW..t],
-            &series.measured[t - WINDOW..t],
-            &series.irrigation[t..t + longest],
+            Past {
+                u: &supply[t - WINDOW..t],
+                y: &series.measured[t - WINDOW..t],
+                et0: &series.et0[t - WINDOW..t],
+            },
+            &supply[t..t + longest],
+            &series.et0[t..t + longest],
         );
         for (sum, &h) in sums.iter_mut().zip(horizons) {
             let e = predicted[h - 1] - y[t + h - 1];
@@ -57,20 +64,22 @@ mod tests {
         let y: Vec<f64> = (0..400).map(|k| (k as f64 / 10.0).sin() + 2.0).collect();
         let series = Series {
             irrigation: vec![0.0; 400],
+            rain: vec![0.0; 400],
+            et0: vec![0.0; 400],
             water_content: y.clone(),
             measured: y.clone(),
         };
         // A predictor that knows the truth scores 0 at every horizon.
-        let truth = |_: &[f64], past: &[f64], future: &[f64]| {
+        let truth = |past: Past<'_>, future: &[f64], _: &[f64]| {
             // recover t from the last measured value's position
-            let t = y.iter().position(|v| *v == past[WINDOW - 1]).unwrap() + 1;
+            let t = y.iter().position(|v| *v == past.y[WINDOW - 1]).unwrap() + 1;
             y[t..t + future.len()].to_vec()
         };
         let scores = recursive_nrmse(&series, &[1, 10, 20], 1, truth);
         assert!(scores.iter().all(|s| *s < 1e-15), "{scores:?}");
         // Persistence (ŷ = last value) is off by |y[t+h−1] − y[t−1]|: worse with h.
         let persist =
-            |_: &[f64], past: &[f64], future: &[f64]| vec![past[WINDOW - 1]; future.len()];
+            |past: Past<'_>, future: &[f64], _: &[f64]| vec![past.y[WINDOW - 1]; future.len()];
         let scores = recursive_nrmse(&series, &[1, 10, 20], 1, persist);
         assert!(scores[0] < scores[1] && scores[1] < scores[2], "{scores:?}");
         // one step of a sine with step 0.1 moves by at most 0.1: RMSE ≈ 0.1/√2, range 2

@@ -3,9 +3,9 @@
 //! ```json
 //! {
 //!   "format": "rootzone-surrogate",
-//!   "version": 1,
+//!   "version": 2,
 //!   "architecture": { "kind": "two-layer", "sub_models": [[32], [32], [32, 32]], "combiner_hidden": 16 },
-//!   "scaling": { "u0": 1e-8, "u_max": 1e-5, "y_min": 0.12, "y_max": 0.41 },
+//!   "scaling": { "u0": 1e-8, "u_max": 1e-5, "y_min": 0.12, "y_max": 0.41, "et0_ref": 1e-7 },
 //!   "metadata": { "soil": "loam", "training_seed": 1, "data": { … }, "scores": { … } },
 //!   "weights": [ … ]
 //! }
@@ -17,6 +17,10 @@
 //! strings (`"-0.14384829467088284"`, Rust's shortest round-trip form) so that
 //! every weight reads back bit for bit: serde_json's default float parser (without
 //! its `float_roundtrip` feature) may be off by one unit in the last place.
+//!
+//! Version 2 added the ET0 input. A version-1 file (inputs ū and ȳ, no
+//! `et0_ref`) still loads: its networks get a zero weight on ē, so they
+//! predict what they did, blind to ET0, and are saved as version 2.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -27,12 +31,14 @@ use super::network::{
     MAX_HIDDEN, Mlp, SequenceNet, Surrogate, TwoLayerNet, lstm_architecture_problem,
 };
 use super::rollout::Predictor;
-use super::scaling::{InputScaling, OutputScaling, Scaling};
+use super::scaling::{DEFAULT_ET0_REF, Et0Scaling, InputScaling, OutputScaling, Scaling};
 
 /// Value of the `format` field.
 pub const FORMAT: &str = "rootzone-surrogate";
-/// The version this build writes and reads.
-pub const VERSION: u32 = 1;
+/// The version this build writes (it reads this one and [`LEGACY_VERSION`]).
+pub const VERSION: u32 = 2;
+/// The version before the ET0 input, still read.
+pub const LEGACY_VERSION: u32 = 1;
 
 /// Free-form description of how a model was made.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -70,7 +76,7 @@ pub enum ModelFileError {
         message: String,
     },
     #[error(
-        "{path}: format {found_format:?} version {found_version}, expected {FORMAT:?} version {VERSION}"
+        "{path}: format {found_format:?} version {found_version}, expected {FORMAT:?} version {LEGACY_VERSION} or {VERSION}"
     )]
     WrongFormat {
         path: PathBuf,
@@ -112,6 +118,9 @@ struct ScalingDto {
     u_max: f64,
     y_min: f64,
     y_max: f64,
+    /// Absent in version 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    et0_ref: Option<f64>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -162,6 +171,7 @@ impl ModelFile {
                 u_max: s.input.u_max,
                 y_min: s.output.y_min,
                 y_max: s.output.y_max,
+                et0_ref: Some(s.et0.reference),
             },
             metadata: MetadataDto {
                 soil: self.metadata.soil.clone(),
@@ -193,7 +203,8 @@ impl ModelFile {
         };
         // Check format and version before the rest, whose schema may differ.
         let header: HeaderDto = serde_json::from_str(text).map_err(malformed)?;
-        if header.format != FORMAT || header.version != u64::from(VERSION) {
+        let legacy = header.version == u64::from(LEGACY_VERSION);
+        if header.format != FORMAT || !(legacy || header.version == u64::from(VERSION)) {
             return Err(ModelFileError::WrongFormat {
                 path: path.to_path_buf(),
                 found_format: header.format,
@@ -209,6 +220,15 @@ impl ModelFile {
             output: OutputScaling {
                 y_min: dto.scaling.y_min,
                 y_max: dto.scaling.y_max,
+            },
+            et0: Et0Scaling {
+                reference: match (legacy, dto.scaling.et0_ref) {
+                    (true, _) => DEFAULT_ET0_REF,
+                    (false, Some(r)) => r,
+                    (false, None) => {
+                        return Err(invalid("scaling.et0_ref is missing".into()));
+                    }
+                },
             },
         };
         if let Some(problem) = scaling.problem() {
@@ -258,13 +278,16 @@ impl ModelFile {
                 _ => return Err(invalid(format!("weight {i} is not a finite number: {w:?}"))),
             }
         }
-        model
-            .set_params(&weights)
-            .map_err(|e| ModelFileError::WeightsLength {
-                path: path.to_path_buf(),
-                expected: e.expected,
-                found: e.found,
-            })?;
+        let set = if legacy {
+            model.set_legacy_params(&weights)
+        } else {
+            model.set_params(&weights)
+        };
+        set.map_err(|e| ModelFileError::WeightsLength {
+            path: path.to_path_buf(),
+            expected: e.expected,
+            found: e.found,
+        })?;
         Ok(ModelFile {
             model,
             scaling,
@@ -339,15 +362,70 @@ mod tests {
         }
     }
 
-    fn predictions(file: &ModelFile) -> Vec<f64> {
-        let past_u = [2e-7; 20];
+    fn predictions_at(file: &ModelFile, et0: f64) -> Vec<f64> {
         let past_y: Vec<f64> = (0..20).map(|i| 0.2 + 0.004 * i as f64).collect();
+        let past = crate::surrogate::Past {
+            u: &[2e-7; 20],
+            y: &past_y,
+            et0: &[et0; 20],
+        };
         let future_u = [1e-6, 0.0, 5e-6, 3e-7, 0.0];
         let mut out = vec![0.0; 5];
         file.predictor()
-            .predict(&past_u, &past_y, &future_u, 0.0, &mut out)
+            .predict(past, &future_u, &[et0; 5], 0.0, &mut out)
             .unwrap();
         out
+    }
+
+    fn predictions(file: &ModelFile) -> Vec<f64> {
+        predictions_at(file, 5e-8)
+    }
+
+    #[test]
+    fn a_version_1_file_loads_blind_to_et0() {
+        let file = sample();
+        // the version-1 form: no et0_ref, and no input weights of ē
+        let mut dto: serde_json::Value = serde_json::from_str(&file.to_json()).unwrap();
+        dto["version"] = 1.into();
+        dto["scaling"].as_object_mut().unwrap().remove("et0_ref");
+        let Surrogate::TwoLayer(m) = &file.model else {
+            unreachable!()
+        };
+        let mut legacy = Vec::new();
+        for net in &m.sub_models {
+            let row = 4 * net.hidden_sizes()[0];
+            let p = net.params();
+            legacy.extend_from_slice(&p[..2 * row]);
+            legacy.extend_from_slice(&p[3 * row..]);
+        }
+        legacy.extend_from_slice(m.combiner.params());
+        dto["weights"] = legacy.iter().map(|w| w.to_string()).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("old.json");
+        std::fs::write(&path, dto.to_string()).unwrap();
+        let old = ModelFile::load(&path).unwrap();
+        assert_eq!(old.scaling, Scaling::default());
+        // blind to ET0: the same prediction at any ET0, and it differs from
+        // the version-2 model's, which sees it
+        let dry = predictions_at(&old, 0.0);
+        assert_eq!(predictions_at(&old, 9e-8), dry);
+        assert_ne!(predictions_at(&file, 9e-8), predictions_at(&file, 0.0));
+        // saved again, it is a version-2 file that predicts the same
+        old.save(&path).unwrap();
+        assert!(
+            std::fs::read_to_string(&path)
+                .unwrap()
+                .contains("\"version\": 2")
+        );
+        assert_eq!(predictions_at(&ModelFile::load(&path).unwrap(), 0.0), dry);
+        // a version-2 file must give et0_ref
+        let mut dto: serde_json::Value = serde_json::from_str(&file.to_json()).unwrap();
+        dto["scaling"].as_object_mut().unwrap().remove("et0_ref");
+        std::fs::write(&path, dto.to_string()).unwrap();
+        assert!(matches!(
+            ModelFile::load(&path),
+            Err(ModelFileError::Invalid { .. })
+        ));
     }
 
     #[test]
@@ -384,16 +462,16 @@ mod tests {
             other => panic!("{other:?}"),
         }
 
-        let v2 = text.replacen("\"version\": 1", "\"version\": 2", 1);
-        assert_ne!(v2, text);
-        std::fs::write(&path, v2).unwrap();
+        let v3 = text.replacen("\"version\": 2", "\"version\": 3", 1);
+        assert_ne!(v3, text);
+        std::fs::write(&path, v3).unwrap();
         match ModelFile::load(&path) {
             Err(ModelFileError::WrongFormat {
                 found_format,
                 found_version,
                 ..
             }) => {
-                assert_eq!((found_format.as_str(), found_version), (FORMAT, 2));
+                assert_eq!((found_format.as_str(), found_version), (FORMAT, 3));
             }
             other => panic!("{other:?}"),
         }

@@ -172,7 +172,7 @@ pub fn fine_tune(
     let (mut tr, mut va) = (Vec::new(), Vec::new());
     for (i, spec) in specs.iter().enumerate() {
         let series = get(spec)?;
-        let samples = data.push_series(&series.irrigation, &series.measured, &scaling);
+        let samples = data.push_series(&series.supply(), &series.measured, &series.et0, &scaling);
         if let Some(level) = plan.window_noise {
             noisier_windows(
                 &mut data,

@@ -37,5 +37,5 @@ pub mod train;
 
 pub use file::{Metadata, ModelFile, ModelFileError};
 pub use network::{Mlp, SequenceNet, Surrogate, TwoLayerNet};
-pub use rollout::{HORIZON, Predictor};
+pub use rollout::{HORIZON, Past, Predictor};
 pub use scaling::Scaling;

@@ -12,8 +12,11 @@ use super::dense::{Dense, dot, sigmoid};
 use super::evaluate::WINDOW;
 use super::lstm::{Lstm, LstmTape};
 
-/// Input features per window step: (ū, ȳ).
-pub const FEATURES: usize = 2;
+/// Input features per window step: (ū, ȳ, ē), the supply, the output and
+/// the reference evapotranspiration (see [`super::scaling`]).
+pub const FEATURES: usize = 3;
+/// Input features of the model files of version 1, before ET0: (ū, ȳ).
+pub const LEGACY_FEATURES: usize = 2;
 /// Inputs of the combiner M_A: the three sub-model predictions.
 pub const COMBINER_INPUTS: usize = 3;
 /// Largest hidden size accepted (a sanity bound for files).
@@ -85,7 +88,7 @@ pub struct SequenceWorkspace {
     tapes: Vec<LstmTape>,
     /// ∂L/∂h of every step, one buffer per layer.
     dh: Vec<Vec<f64>>,
-    /// The inputs, (ū, ȳ) per step.
+    /// The inputs, (ū, ȳ, ē) per step.
     pub(crate) x: Vec<f64>,
     /// ∂L/∂x of the sequence, filled by the backward pass when asked.
     pub(crate) dx: Vec<f64>,
@@ -150,6 +153,32 @@ impl SequenceNet {
         self.layers.iter().map(|l| l.hidden).collect()
     }
 
+    /// How many parameters this architecture had with the
+    /// [`LEGACY_FEATURES`] inputs of model files before ET0.
+    pub fn legacy_n_params(&self) -> usize {
+        self.n_params() - 4 * self.layers[0].hidden * (FEATURES - LEGACY_FEATURES)
+    }
+
+    /// This architecture's parameters from those of a network without the
+    /// ET0 input: the first layer's input weights of ē are zero, so the
+    /// network predicts exactly what the old one did, whatever ET0 is.
+    pub fn params_from_legacy(&self, legacy: &[f64]) -> Result<Vec<f64>, ParamLengthError> {
+        let expected = self.legacy_n_params();
+        if legacy.len() != expected {
+            return Err(ParamLengthError {
+                expected,
+                found: legacy.len(),
+            });
+        }
+        // Wᵀ is input-major (one row of 4h per input): ē's row goes after ȳ's
+        let row = 4 * self.layers[0].hidden;
+        let mut p = Vec::with_capacity(self.n_params());
+        p.extend_from_slice(&legacy[..LEGACY_FEATURES * row]);
+        p.resize(p.len() + (FEATURES - LEGACY_FEATURES) * row, 0.0);
+        p.extend_from_slice(&legacy[LEGACY_FEATURES * row..]);
+        Ok(p)
+    }
+
     pub fn n_params(&self) -> usize {
         self.params.len()
     }
@@ -188,11 +217,12 @@ impl SequenceNet {
         self.params.len() - self.head.n_params()
     }
 
-    /// ȳ_next from a window of scaled inputs `u` and outputs `y` (each
-    /// [`WINDOW`] long, oldest first; step τ of the window is (u[τ], y[τ])).
-    pub fn predict(&self, ws: &mut SequenceWorkspace, u: &[f64], y: &[f64]) -> f64 {
+    /// ȳ_next from a window of scaled inputs `u`, outputs `y` and ET0 `e`
+    /// (each [`WINDOW`] long, oldest first; step τ of the window is (u[τ],
+    /// y[τ], e[τ])).
+    pub fn predict(&self, ws: &mut SequenceWorkspace, u: &[f64], y: &[f64], e: &[f64]) -> f64 {
         ws.ensure_steps(WINDOW);
-        fill_window(&mut ws.x, u, y);
+        fill_window(&mut ws.x, u, y, e);
         self.forward(ws)
     }
 
@@ -376,11 +406,12 @@ impl SequenceNet {
     }
 }
 
-/// Interleaves `u` and `y` into `x` = (u₀, y₀, u₁, y₁, …).
-pub(crate) fn fill_window(x: &mut [f64], u: &[f64], y: &[f64]) {
-    for ((pair, &ui), &yi) in x.chunks_exact_mut(FEATURES).zip(u).zip(y) {
-        pair[0] = ui;
-        pair[1] = yi;
+/// Interleaves `u`, `y` and `e` into `x` = (u₀, y₀, e₀, u₁, y₁, e₁, …).
+pub(crate) fn fill_window(x: &mut [f64], u: &[f64], y: &[f64], e: &[f64]) {
+    for (((step, &ui), &yi), &ei) in x.chunks_exact_mut(FEATURES).zip(u).zip(y).zip(e) {
+        step[0] = ui;
+        step[1] = yi;
+        step[2] = ei;
     }
 }
 
@@ -560,6 +591,47 @@ impl Surrogate {
         }
     }
 
+    /// The parameter count of this architecture before ET0 (model files of
+    /// version 1).
+    pub fn legacy_n_params(&self) -> usize {
+        match self {
+            Surrogate::Single(net) => net.legacy_n_params(),
+            Surrogate::TwoLayer(m) => {
+                m.sub_models
+                    .iter()
+                    .map(SequenceNet::legacy_n_params)
+                    .sum::<usize>()
+                    + m.combiner.n_params()
+            }
+        }
+    }
+
+    /// Sets the parameters from those of the same architecture without the
+    /// ET0 input (see [`SequenceNet::params_from_legacy`]).
+    pub fn set_legacy_params(&mut self, legacy: &[f64]) -> Result<(), ParamLengthError> {
+        let expected = self.legacy_n_params();
+        if legacy.len() != expected {
+            return Err(ParamLengthError {
+                expected,
+                found: legacy.len(),
+            });
+        }
+        let mut widened = Vec::with_capacity(self.n_params());
+        match self {
+            Surrogate::Single(net) => widened = net.params_from_legacy(legacy)?,
+            Surrogate::TwoLayer(m) => {
+                let mut offset = 0;
+                for s in &m.sub_models {
+                    let n = s.legacy_n_params();
+                    widened.extend(s.params_from_legacy(&legacy[offset..offset + n])?);
+                    offset += n;
+                }
+                widened.extend_from_slice(&legacy[offset..]);
+            }
+        }
+        self.set_params(&widened)
+    }
+
     /// All parameters, concatenated (two-layer: M1, M2, M3, M_A).
     pub fn params(&self) -> Vec<f64> {
         match self {
@@ -604,11 +676,12 @@ pub(crate) mod tests {
     use super::*;
 
     /// A window of plausible scaled values, deterministic in `seed`.
-    pub(crate) fn random_window(seed: u64) -> (Vec<f64>, Vec<f64>) {
+    pub(crate) fn random_window(seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
         let mut draw = uniform_draw(seed);
         let u = (0..WINDOW).map(|_| draw()).collect();
         let y = (0..WINDOW).map(|_| 0.2 + 0.6 * draw()).collect();
-        (u, y)
+        let e = (0..WINDOW).map(|_| 2.0 * draw()).collect();
+        (u, y, e)
     }
 
     /// Parameters perturbed away from the initialisation so that no gradient
@@ -625,16 +698,16 @@ pub(crate) mod tests {
         let mut p = net.params().to_vec();
         jiggle(&mut p, 8, 0.3);
         net.set_params(&p).unwrap();
-        let (u, y) = random_window(9);
+        let (u, y, e) = random_window(9);
         let mut ws = net.workspace();
         // loss L = ŷ²/2 so that dL/dŷ = ŷ
-        let out = net.predict(&mut ws, &u, &y);
+        let out = net.predict(&mut ws, &u, &y, &e);
         let mut grad = vec![0.0; net.n_params()];
         net.backward(&mut ws, out, Some(&mut grad), true);
         let dx = ws.dx.clone();
-        let loss = |net: &SequenceNet, u: &[f64], y: &[f64]| {
+        let loss = |net: &SequenceNet, u: &[f64], y: &[f64], e: &[f64]| {
             let mut ws = net.workspace();
-            let o = net.predict(&mut ws, u, y);
+            let o = net.predict(&mut ws, u, y, e);
             0.5 * o * o
         };
         let eps = 1e-6;
@@ -644,7 +717,7 @@ pub(crate) mod tests {
             plus.params_mut()[k] += eps;
             let mut minus = net.clone();
             minus.params_mut()[k] -= eps;
-            let fd = (loss(&plus, &u, &y) - loss(&minus, &u, &y)) / (2.0 * eps);
+            let fd = (loss(&plus, &u, &y, &e) - loss(&minus, &u, &y, &e)) / (2.0 * eps);
             let err = (fd - gk).abs() / (fd.abs().max(gk.abs()).max(1e-3));
             worst = worst.max(err);
             assert!(err < 1e-5, "param {k}: fd {fd} vs {}", gk);
@@ -652,15 +725,13 @@ pub(crate) mod tests {
         // Input gradients: ∂L/∂x = ŷ·∂ŷ/∂x.
         for tau in 0..WINDOW {
             for f in 0..FEATURES {
-                let (mut up, mut yp, mut um, mut ym) = (u.clone(), y.clone(), u.clone(), y.clone());
-                if f == 0 {
-                    up[tau] += eps;
-                    um[tau] -= eps;
-                } else {
-                    yp[tau] += eps;
-                    ym[tau] -= eps;
-                }
-                let fd = (loss(&net, &up, &yp) - loss(&net, &um, &ym)) / (2.0 * eps);
+                let mut plus = [u.clone(), y.clone(), e.clone()];
+                let mut minus = plus.clone();
+                plus[f][tau] += eps;
+                minus[f][tau] -= eps;
+                let fd = (loss(&net, &plus[0], &plus[1], &plus[2])
+                    - loss(&net, &minus[0], &minus[1], &minus[2]))
+                    / (2.0 * eps);
                 let a = dx[tau * FEATURES + f];
                 let err = (fd - a).abs() / fd.abs().max(a.abs()).max(1e-3);
                 assert!(err < 1e-5, "x[{tau}][{f}]: fd {fd} vs {a}");
@@ -771,8 +842,10 @@ pub(crate) mod tests {
     fn forward_matches_a_hand_computed_one_unit_lstm() {
         // 1 layer, hidden 1: set every weight by hand and recompute.
         let mut net = SequenceNet::new(&[1], 0);
-        // layout: Wᵀ (2 rows × 4), Uᵀ (1 × 4), b (4), head w (1), head b (1)
-        let wt = [0.5, -0.3, 0.8, 0.1, 0.2, 0.4, -0.6, 0.7];
+        // layout: Wᵀ (3 rows × 4), Uᵀ (1 × 4), b (4), head w (1), head b (1)
+        let wt = [
+            0.5, -0.3, 0.8, 0.1, 0.2, 0.4, -0.6, 0.7, -0.4, 0.3, 0.2, -0.1,
+        ];
         let ut = [0.3, -0.2, 0.5, 0.9];
         let b = [0.1, 1.0, -0.1, 0.0];
         let mut p = Vec::new();
@@ -781,29 +854,59 @@ pub(crate) mod tests {
         p.extend_from_slice(&b);
         p.extend_from_slice(&[1.5, -0.25]);
         net.set_params(&p).unwrap();
-        let (u, y) = random_window(1);
+        let (u, y, e) = random_window(1);
         let s = |x: f64| 1.0 / (1.0 + (-x).exp());
         let (mut h, mut c) = (0.0, 0.0);
         for t in 0..WINDOW {
-            let a = |g: usize| wt[g] * u[t] + wt[4 + g] * y[t] + ut[g] * h + b[g];
+            let a =
+                |g: usize| wt[g] * u[t] + wt[4 + g] * y[t] + wt[8 + g] * e[t] + ut[g] * h + b[g];
             let (i, f, g, o) = (s(a(0)), s(a(1)), a(2).tanh(), s(a(3)));
             c = f * c + i * g;
             h = o * c.tanh();
         }
         let expected = 1.5 * h - 0.25;
-        let got = net.predict(&mut net.workspace(), &u, &y);
+        let got = net.predict(&mut net.workspace(), &u, &y, &e);
         assert!((got - expected).abs() < 1e-14, "{got} vs {expected}");
+    }
+
+    #[test]
+    fn a_network_widened_from_one_without_et0_predicts_as_it_did_for_any_et0() {
+        for hidden in [&[3][..], &[4, 2]] {
+            // the old network: the same weights with ē's input row left out
+            let mut net = SequenceNet::new(hidden, 3);
+            let mut p = net.params().to_vec();
+            jiggle(&mut p, 4, 0.3);
+            net.set_params(&p).unwrap();
+            let row = 4 * hidden[0];
+            let mut legacy = p[..2 * row].to_vec();
+            legacy.extend_from_slice(&p[3 * row..]);
+            assert_eq!(legacy.len(), net.legacy_n_params());
+            let (u, y, e) = random_window(5);
+            let mut old = net.clone();
+            let mut zeroed = p.clone();
+            zeroed[2 * row..3 * row].fill(0.0);
+            old.set_params(&zeroed).unwrap();
+            let widened = net.params_from_legacy(&legacy).unwrap();
+            assert_eq!(widened, zeroed);
+            let reference = old.predict(&mut old.workspace(), &u, &y, &[0.0; WINDOW]);
+            let got = old.predict(&mut old.workspace(), &u, &y, &e);
+            assert_eq!(got, reference, "ET0 changed a widened network's prediction");
+            // and the ē row does matter once it is not zero
+            let with_e = net.predict(&mut net.workspace(), &u, &y, &e);
+            assert!((with_e - reference).abs() > 1e-6);
+            assert!(net.params_from_legacy(&legacy[1..]).is_err());
+        }
     }
 
     #[test]
     fn initialisation_is_seeded_and_sized() {
         let a = SequenceNet::new(&[16, 8], 5);
-        // 4·16·(2+16+1) + 4·8·(16+8+1) + 9
-        assert_eq!(a.n_params(), 1216 + 800 + 9);
+        // 4·16·(3+16+1) + 4·8·(16+8+1) + 9
+        assert_eq!(a.n_params(), 1280 + 800 + 9);
         assert_eq!(a, SequenceNet::new(&[16, 8], 5));
         assert_ne!(a.params(), SequenceNet::new(&[16, 8], 6).params());
         // forget-gate biases start at 1, the others at 0
-        let b = &a.params()[4 * 16 * 18..4 * 16 * 19];
+        let b = &a.params()[4 * 16 * 19..4 * 16 * 20];
         assert!(b[16..32].iter().all(|&v| v == 1.0));
         assert!(b[..16].iter().chain(&b[32..]).all(|&v| v == 0.0));
         assert_eq!(Mlp::new(8, 1).n_params(), 8 * 4 + 8 * 9 + 9);

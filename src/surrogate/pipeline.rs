@@ -318,9 +318,9 @@ pub struct TrainingOutcome {
 
 /// Open-loop NRMSE at 1, 10, 20 steps (every window of the series).
 pub fn nrmse_scores(predictor: &mut Predictor, series: &Series) -> [f64; 3] {
-    let scores = recursive_nrmse(series, &SCORE_HORIZONS, 1, |pu, py, fu| {
+    let scores = recursive_nrmse(series, &SCORE_HORIZONS, 1, |past, fu, fe| {
         let mut out = vec![0.0; fu.len()];
-        match predictor.predict(pu, py, fu, 0.0, &mut out) {
+        match predictor.predict(past, fu, fe, 0.0, &mut out) {
             Ok(()) => out,
             Err(_) => vec![f64::NAN; fu.len()],
         }
@@ -328,8 +328,9 @@ pub fn nrmse_scores(predictor: &mut Predictor, series: &Series) -> [f64; 3] {
     [scores[0], scores[1], scores[2]]
 }
 
-/// The weather the training data is generated under: the dry scenario's
-/// reference ET, repeated.
+/// The weather whose diurnal ET0 shape the training data is generated with
+/// (the dry scenario; the daily totals and the rain are drawn, see
+/// [`super::dataset`]).
 pub fn training_weather() -> WeatherSeries {
     WeatherSeries::parse(DRY_SCENARIO, "embedded weather-dry.csv")
         .expect("the embedded weather scenario parses")
@@ -434,7 +435,7 @@ pub fn run_training(
     // appends a series and gives its input windows the plan's noise, drawn
     // from `noise_seed`: the same seed gives the same windows
     let push_windows = |data: &mut SequenceData, series: &Series, noise_seed: u64| {
-        let samples = data.push_series(&series.irrigation, &series.measured, &scaling);
+        let samples = data.push_series(&series.supply(), &series.measured, &series.et0, &scaling);
         if let Some(level) = plan.window_noise {
             noisier_windows(data, series, &scaling, level, noise_seed);
         }
@@ -839,6 +840,8 @@ mod tests {
             .collect();
         Series {
             irrigation: vec![1e-7; len],
+            rain: vec![0.0; len],
+            et0: vec![4e-8; len],
             water_content,
             measured,
         }
@@ -853,10 +856,10 @@ mod tests {
         let first = series(40_000, 0.02, 1);
         let second = series(30_000, 0.01, 2);
         let mut data = SequenceData::new(HORIZON);
-        data.push_series(&first.irrigation, &first.measured, &scaling);
+        data.push_series(&first.irrigation, &first.measured, &first.et0, &scaling);
         let targets_before = data.y.clone();
         noisier_windows(&mut data, &first, &scaling, 0.2, 9);
-        data.push_series(&second.irrigation, &second.measured, &scaling);
+        data.push_series(&second.irrigation, &second.measured, &second.et0, &scaling);
         noisier_windows(&mut data, &second, &scaling, 0.2, 10);
         assert_eq!(data.y[..first.len()], targets_before[..]);
         assert_eq!(data.y_input.len(), data.y.len());
@@ -875,7 +878,7 @@ mod tests {
         }
         // the same seed gives the same windows
         let mut again = SequenceData::new(HORIZON);
-        again.push_series(&first.irrigation, &first.measured, &scaling);
+        again.push_series(&first.irrigation, &first.measured, &first.et0, &scaling);
         noisier_windows(&mut again, &first, &scaling, 0.2, 9);
         assert_eq!(again.y_input[..], data.y_input[..first.len()]);
     }

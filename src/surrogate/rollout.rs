@@ -7,20 +7,22 @@
 //! irrigation rate applied over sampling step k and y[k] the water content
 //! measured at the end of that step. At the current time t:
 //!
-//! * `past_u[i] = u[t − 20 + i]`, `past_y[i] = y[t − 20 + i]` for i = 0..20
-//!   (the last measured output is y[t − 1]);
+//! * `past.u[i] = u[t − 20 + i]`, `past.y[i] = y[t − 20 + i]` and
+//!   `past.et0[i] = ET0[t − 20 + i]` for i = 0..20 (the last measured output
+//!   is y[t − 1]);
 //! * `future_u[k] = u[t + k]` for k = 0..N (the plan; `future_u[0]` is the rate
-//!   applied from now);
+//!   applied from now) and `future_et0[k] = ET0[t + k]`, the forecast;
 //! * the result `ŷ[k]` predicts y[t + k], the water content at the end of the
 //!   step over which `future_u[k]` is applied.
 //!
 //! The prediction continues one recurrence (see [`SequenceNet`]): the LSTM
-//! state is warmed up from rest on the pairs (ū[t − 19 + τ], ȳ[t − 20 + τ]),
-//! τ = 0..19, i.e. (`past_u[1..20]`, `past_y[0..19]`); ŷ[0] comes from the
-//! pair (`future_u[0]`, `past_y[19]`), so that it sees exactly the 20-sample
-//! window (`past_u[1..20]` ++ [`future_u[0]`], `past_y`); ŷ[k] comes from one
-//! more step on (`future_u[k]`, ŷ[k − 1]), the model's own (unbiased)
-//! prediction fed back. A rollout over N steps therefore costs 19 + N LSTM
+//! state is warmed up from rest on the steps (ū[t − 19 + τ], ȳ[t − 20 + τ],
+//! ē[t − 19 + τ]), τ = 0..19, i.e. (`past.u[1..20]`, `past.y[0..19]`,
+//! `past.et0[1..20]`): ET0 goes with the supply of the same step, the
+//! weather over which y moved. ŷ[0] comes from the step (`future_u[0]`,
+//! `past.y[19]`, `future_et0[0]`), so that it sees exactly the 20-sample
+//! window; ŷ[k] comes from one more step on (`future_u[k]`, ŷ[k − 1],
+//! `future_et0[k]`), the model's own (unbiased) prediction fed back. A rollout over N steps therefore costs 19 + N LSTM
 //! steps, and the 19 warm-up steps are kept and reused while the past window
 //! stays the same (as it does across the iterations of one MPC solve).
 //!
@@ -47,6 +49,16 @@ use super::scaling::Scaling;
 /// Default prediction horizon N.
 pub const HORIZON: usize = 20;
 
+/// The past window of a prediction: the last [`WINDOW`] supplies u [m/s],
+/// measured outputs y and ET0 rates [m/s], oldest first (see the module
+/// docs).
+#[derive(Debug, Clone, Copy)]
+pub struct Past<'a> {
+    pub u: &'a [f64],
+    pub y: &'a [f64],
+    pub et0: &'a [f64],
+}
+
 /// Wrong lengths passed to [`Predictor::predict`] or
 /// [`Predictor::predict_with_jacobian`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -71,6 +83,7 @@ pub struct Predictor {
     /// The raw past window the warmed-up state belongs to.
     warm_u: Vec<f64>,
     warm_y: Vec<f64>,
+    warm_e: Vec<f64>,
     warm: bool,
     /// Scaled (unbiased) predictions.
     y: Vec<f64>,
@@ -98,6 +111,7 @@ impl Predictor {
             combiner,
             warm_u: Vec::with_capacity(WINDOW),
             warm_y: Vec::with_capacity(WINDOW),
+            warm_e: Vec::with_capacity(WINDOW),
             warm: false,
             y: Vec::new(),
             d: Vec::new(),
@@ -115,9 +129,9 @@ impl Predictor {
     }
 
     fn check(
-        past_u: &[f64],
-        past_y: &[f64],
+        past: Past<'_>,
         future_u: &[f64],
+        future_et0: &[f64],
         out: &[f64],
     ) -> Result<(), RolloutError> {
         let expect = |what, expected, found| {
@@ -131,22 +145,25 @@ impl Predictor {
                 })
             }
         };
-        expect("past_u", WINDOW, past_u.len())?;
-        expect("past_y", WINDOW, past_y.len())?;
+        expect("past_u", WINDOW, past.u.len())?;
+        expect("past_y", WINDOW, past.y.len())?;
+        expect("past_et0", WINDOW, past.et0.len())?;
+        expect("future_et0", future_u.len(), future_et0.len())?;
         expect("out", future_u.len(), out.len())
     }
 
     /// The rollout in scaled units into `self.y` and, when `jacobian`, the
     /// scaled sensitivities into `self.d`.
-    fn run(&mut self, past_u: &[f64], past_y: &[f64], future_u: &[f64], jacobian: bool) {
+    fn run(&mut self, past: Past<'_>, future_u: &[f64], future_et0: &[f64], jacobian: bool) {
         let n = future_u.len();
-        let (si, so) = (self.scaling.input, self.scaling.output);
+        let (si, so, se) = (self.scaling.input, self.scaling.output, self.scaling.et0);
         let Predictor {
             model,
             subs,
             combiner,
             warm_u,
             warm_y,
+            warm_e,
             warm,
             y,
             d,
@@ -158,13 +175,17 @@ impl Predictor {
             Surrogate::Single(net) => (std::slice::from_ref(net), None),
             Surrogate::TwoLayer(m) => (&m.sub_models[..], Some(&m.combiner)),
         };
-        let cached = *warm && warm_u.as_slice() == past_u && warm_y.as_slice() == past_y;
+        let cached = *warm
+            && warm_u.as_slice() == past.u
+            && warm_y.as_slice() == past.y
+            && warm_e.as_slice() == past.et0;
         for (net, ws) in nets.iter().zip(subs.iter_mut()) {
             ws.ensure_steps(WINDOW - 1 + n);
             if !cached {
                 for tau in 0..WINDOW - 1 {
-                    ws.x[tau * FEATURES] = si.scale(past_u[tau + 1]);
-                    ws.x[tau * FEATURES + 1] = so.scale(past_y[tau]);
+                    ws.x[tau * FEATURES] = si.scale(past.u[tau + 1]);
+                    ws.x[tau * FEATURES + 1] = so.scale(past.y[tau]);
+                    ws.x[tau * FEATURES + 2] = se.scale(past.et0[tau + 1]);
                 }
                 net.advance(ws, 0, WINDOW - 1);
             }
@@ -174,9 +195,11 @@ impl Predictor {
         }
         if !cached {
             warm_u.clear();
-            warm_u.extend_from_slice(past_u);
+            warm_u.extend_from_slice(past.u);
             warm_y.clear();
-            warm_y.extend_from_slice(past_y);
+            warm_y.extend_from_slice(past.y);
+            warm_e.clear();
+            warm_e.extend_from_slice(past.et0);
             *warm = true;
         }
         y.clear();
@@ -189,14 +212,16 @@ impl Predictor {
             dy.clear();
             dy.resize(n, 0.0);
         }
-        let mut prev = so.scale(past_y[WINDOW - 1]);
+        let mut prev = so.scale(past.y[WINDOW - 1]);
         for k in 0..n {
             let t = WINDOW - 1 + k;
             let uk = si.scale(future_u[k]);
+            let ek = se.scale(future_et0[k]);
             let mut z = [0.0; 3];
             for ((net, ws), zi) in nets.iter().zip(subs.iter_mut()).zip(&mut z) {
                 ws.x[t * FEATURES] = uk;
                 ws.x[t * FEATURES + 1] = prev;
+                ws.x[t * FEATURES + 2] = ek;
                 net.advance(ws, t, t + 1);
                 *zi = net.output(ws, t);
             }
@@ -212,6 +237,8 @@ impl Predictor {
                 for j in 0..dirs {
                     dx[j * FEATURES] = if j == k { 1.0 } else { 0.0 };
                     dx[j * FEATURES + 1] = dy[j];
+                    // ET0 is given: no tangent
+                    dx[j * FEATURES + 2] = 0.0;
                 }
                 for (net, ws) in nets.iter().zip(subs.iter_mut()) {
                     net.tangent_step(ws, t, dirs, dx);
@@ -233,18 +260,19 @@ impl Predictor {
     }
 
     /// Recursive prediction ŷ[k] of y[t + k], k = 0..N, into `out` (N =
-    /// `future_u.len()`), with `bias` added to the returned values only. See
-    /// the module docs for the convention.
+    /// `future_u.len()`, as many forecast ET0 rates in `future_et0`), with
+    /// `bias` added to the returned values only. See the module docs for the
+    /// convention.
     pub fn predict(
         &mut self,
-        past_u: &[f64],
-        past_y: &[f64],
+        past: Past<'_>,
         future_u: &[f64],
+        future_et0: &[f64],
         bias: f64,
         out: &mut [f64],
     ) -> Result<(), RolloutError> {
-        Self::check(past_u, past_y, future_u, out)?;
-        self.run(past_u, past_y, future_u, false);
+        Self::check(past, future_u, future_et0, out)?;
+        self.run(past, future_u, future_et0, false);
         let so = self.scaling.output;
         for (o, &v) in out.iter_mut().zip(&self.y) {
             *o = so.unscale(v) + bias;
@@ -257,14 +285,14 @@ impl Predictor {
     /// diagonal).
     pub fn predict_with_jacobian(
         &mut self,
-        past_u: &[f64],
-        past_y: &[f64],
+        past: Past<'_>,
         future_u: &[f64],
+        future_et0: &[f64],
         bias: f64,
         out: &mut [f64],
         jacobian: &mut [f64],
     ) -> Result<(), RolloutError> {
-        Self::check(past_u, past_y, future_u, out)?;
+        Self::check(past, future_u, future_et0, out)?;
         let n = future_u.len();
         if jacobian.len() != n * n {
             return Err(RolloutError::Length {
@@ -273,7 +301,7 @@ impl Predictor {
                 found: jacobian.len(),
             });
         }
-        self.run(past_u, past_y, future_u, true);
+        self.run(past, future_u, future_et0, true);
         let (si, so) = (self.scaling.input, self.scaling.output);
         for (o, &v) in out.iter_mut().zip(&self.y) {
             *o = so.unscale(v) + bias;
@@ -317,8 +345,32 @@ mod tests {
         m
     }
 
-    /// A past window and a plan with rates in the interior (1e-7..5e-6 m/s).
-    fn scenario(n: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    /// A past window, a plan with rates in the interior (1e-7..5e-6 m/s)
+    /// and its ET0.
+    struct Scenario {
+        past_u: Vec<f64>,
+        past_y: Vec<f64>,
+        past_e: Vec<f64>,
+        future_u: Vec<f64>,
+        future_e: Vec<f64>,
+    }
+
+    impl Scenario {
+        fn past(&self) -> Past<'_> {
+            Past {
+                u: &self.past_u,
+                y: &self.past_y,
+                et0: &self.past_e,
+            }
+        }
+    }
+
+    /// A diurnal ET0 rate around 4 mm/day [m/s].
+    fn et0_at(k: usize) -> f64 {
+        4.63e-8 * (1.0 + (k as f64 * std::f64::consts::PI / 6.0).sin())
+    }
+
+    fn scenario(n: usize) -> Scenario {
         let past_u: Vec<f64> = (0..WINDOW)
             .map(|i| if i % 4 == 0 { 3e-6 } else { 2e-7 })
             .collect();
@@ -328,7 +380,13 @@ mod tests {
         let future_u: Vec<f64> = (0..n)
             .map(|k| 1e-7 + 4.9e-6 * (0.5 + 0.5 * (k as f64 * 1.3).sin()))
             .collect();
-        (past_u, past_y, future_u)
+        Scenario {
+            past_u,
+            past_y,
+            past_e: (0..WINDOW).map(et0_at).collect(),
+            future_u,
+            future_e: (WINDOW..WINDOW + n).map(et0_at).collect(),
+        }
     }
 
     #[test]
@@ -337,25 +395,31 @@ mod tests {
             unreachable!()
         };
         let scaling = Scaling::default();
-        let (past_u, past_y, future_u) = scenario(1);
+        let sc = scenario(1);
         let mut p = Predictor::new(Surrogate::Single(net.clone()), scaling);
         let mut out = [0.0];
-        p.predict(&past_u, &past_y, &future_u, 0.0, &mut out)
+        p.predict(sc.past(), &sc.future_u, &sc.future_e, 0.0, &mut out)
             .unwrap();
-        // window: u[t−19..=t] = past_u[1..] ++ future_u[0], y[t−20..t] = past_y
-        let u: Vec<f64> = past_u[1..]
+        // window: u[t−19..=t] = past_u[1..] ++ future_u[0], y[t−20..t] =
+        // past_y, ET0 with the supply
+        let u: Vec<f64> = sc.past_u[1..]
             .iter()
-            .chain(&future_u[..1])
+            .chain(&sc.future_u[..1])
             .map(|&v| scaling.input.scale(v))
             .collect();
-        let y: Vec<f64> = past_y.iter().map(|&v| scaling.output.scale(v)).collect();
+        let y: Vec<f64> = sc.past_y.iter().map(|&v| scaling.output.scale(v)).collect();
+        let e: Vec<f64> = sc.past_e[1..]
+            .iter()
+            .chain(&sc.future_e[..1])
+            .map(|&v| scaling.et0.scale(v))
+            .collect();
         let direct = scaling
             .output
-            .unscale(net.predict(&mut net.workspace(), &u, &y));
+            .unscale(net.predict(&mut net.workspace(), &u, &y, &e));
         assert_eq!(out[0], direct);
         // the bias shifts the returned value only
         let mut biased = [0.0];
-        p.predict(&past_u, &past_y, &future_u, 0.01, &mut biased)
+        p.predict(sc.past(), &sc.future_u, &sc.future_e, 0.01, &mut biased)
             .unwrap();
         assert!((biased[0] - direct - 0.01).abs() < 1e-15);
     }
@@ -366,27 +430,37 @@ mod tests {
             unreachable!()
         };
         let scaling = Scaling::default();
-        let (past_u, past_y, future_u) = scenario(2);
+        let sc = scenario(2);
         let mut p = Predictor::new(Surrogate::Single(net.clone()), scaling);
         let mut out = [0.0; 2];
-        p.predict(&past_u, &past_y, &future_u, 0.05, &mut out)
+        p.predict(sc.past(), &sc.future_u, &sc.future_e, 0.05, &mut out)
             .unwrap();
-        // the 21-step sequence by hand: window, then (u[t + 1], ŷ[t])
+        // the 21-step sequence by hand: window, then (u[t + 1], ŷ[t], ē[t + 1])
         let y1 = out[0] - 0.05;
         let su = |v: f64| scaling.input.scale(v);
         let sy = |v: f64| scaling.output.scale(v);
-        let mut pairs: Vec<(f64, f64)> = (0..WINDOW - 1)
-            .map(|tau| (su(past_u[tau + 1]), sy(past_y[tau])))
+        let se = |v: f64| scaling.et0.scale(v);
+        let mut steps: Vec<[f64; 3]> = (0..WINDOW - 1)
+            .map(|tau| {
+                [
+                    su(sc.past_u[tau + 1]),
+                    sy(sc.past_y[tau]),
+                    se(sc.past_e[tau + 1]),
+                ]
+            })
             .collect();
-        pairs.push((su(future_u[0]), sy(past_y[WINDOW - 1])));
-        pairs.push((su(future_u[1]), sy(y1)));
+        steps.push([
+            su(sc.future_u[0]),
+            sy(sc.past_y[WINDOW - 1]),
+            se(sc.future_e[0]),
+        ]);
+        steps.push([su(sc.future_u[1]), sy(y1), se(sc.future_e[1])]);
         let mut ws = net.workspace();
-        ws.ensure_steps(pairs.len());
-        for (t, (a, b)) in pairs.iter().enumerate() {
-            ws.x[2 * t] = *a;
-            ws.x[2 * t + 1] = *b;
+        ws.ensure_steps(steps.len());
+        for (t, step) in steps.iter().enumerate() {
+            ws.x[FEATURES * t..FEATURES * (t + 1)].copy_from_slice(step);
         }
-        net.advance(&mut ws, 0, pairs.len());
+        net.advance(&mut ws, 0, steps.len());
         let direct = scaling.output.unscale(net.output(&ws, WINDOW));
         assert!((out[1] - 0.05 - direct).abs() < 1e-14);
     }
@@ -394,40 +468,38 @@ mod tests {
     #[test]
     fn the_kept_warm_up_is_only_reused_for_the_same_past() {
         let model = two_layer(5, 4);
-        let (past_u, past_y, future_u) = scenario(20);
-        let mut other_y = past_y.clone();
-        other_y[3] += 0.01;
-        let mut reused = Predictor::new(model.clone(), Scaling::default());
-        let mut a = vec![0.0; 20];
-        reused
-            .predict(&past_u, &past_y, &future_u, 0.0, &mut a)
-            .unwrap();
-        reused
-            .predict(&past_u, &other_y, &future_u, 0.0, &mut a)
-            .unwrap();
-        let mut fresh = Predictor::new(model, Scaling::default());
-        let mut b = vec![0.0; 20];
-        fresh
-            .predict(&past_u, &other_y, &future_u, 0.0, &mut b)
-            .unwrap();
-        assert_eq!(a, b);
-        // and a changed past changes the prediction
-        let mut c = vec![0.0; 20];
-        fresh
-            .predict(&past_u, &past_y, &future_u, 0.0, &mut c)
-            .unwrap();
-        assert_ne!(a, c);
+        let sc = scenario(20);
+        let (fu, fe) = (&sc.future_u, &sc.future_e);
+        let mut other = scenario(20);
+        other.past_y[3] += 0.01;
+        let mut other_e = scenario(20);
+        other_e.past_e[7] *= 3.0;
+        for changed in [&other, &other_e] {
+            let mut reused = Predictor::new(model.clone(), Scaling::default());
+            let mut a = vec![0.0; 20];
+            reused.predict(sc.past(), fu, fe, 0.0, &mut a).unwrap();
+            reused.predict(changed.past(), fu, fe, 0.0, &mut a).unwrap();
+            let mut fresh = Predictor::new(model.clone(), Scaling::default());
+            let mut b = vec![0.0; 20];
+            fresh.predict(changed.past(), fu, fe, 0.0, &mut b).unwrap();
+            assert_eq!(a, b);
+            // and a changed past changes the prediction
+            let mut c = vec![0.0; 20];
+            fresh.predict(sc.past(), fu, fe, 0.0, &mut c).unwrap();
+            assert_ne!(a, c);
+        }
     }
 
     fn check_jacobian(model: Surrogate, n: usize) {
         let mut p = Predictor::new(model, Scaling::default());
-        let (past_u, past_y, future_u) = scenario(n);
+        let sc = scenario(n);
+        let (future_u, fe) = (&sc.future_u, &sc.future_e);
         let mut out = vec![0.0; n];
         let mut jac = vec![0.0; n * n];
-        p.predict_with_jacobian(&past_u, &past_y, &future_u, 0.02, &mut out, &mut jac)
+        p.predict_with_jacobian(sc.past(), future_u, fe, 0.02, &mut out, &mut jac)
             .unwrap();
         let mut plain = vec![0.0; n];
-        p.predict(&past_u, &past_y, &future_u, 0.02, &mut plain)
+        p.predict(sc.past(), future_u, fe, 0.02, &mut plain)
             .unwrap();
         assert_eq!(out, plain);
         let mut biggest: f64 = 0.0;
@@ -437,8 +509,8 @@ mod tests {
             up[j] += h;
             down[j] -= h;
             let (mut yp, mut ym) = (vec![0.0; n], vec![0.0; n]);
-            p.predict(&past_u, &past_y, &up, 0.02, &mut yp).unwrap();
-            p.predict(&past_u, &past_y, &down, 0.02, &mut ym).unwrap();
+            p.predict(sc.past(), &up, fe, 0.02, &mut yp).unwrap();
+            p.predict(sc.past(), &down, fe, 0.02, &mut ym).unwrap();
             // scale for the relative error: the largest entry of the column
             let col_scale = (0..n)
                 .map(|k| jac[k * n + j].abs())
@@ -475,17 +547,34 @@ mod tests {
     fn wrong_lengths_are_errors() {
         let mut p = Predictor::new(single(&[2]), Scaling::default());
         let mut out = [0.0; 3];
+        let past = |n_u: usize, n_e: usize| Past {
+            u: &[0.0; 20][..n_u],
+            y: &[0.2; 20],
+            et0: &[4e-8; 20][..n_e],
+        };
         assert_eq!(
-            p.predict(&[0.0; 19], &[0.2; 20], &[0.0; 3], 0.0, &mut out),
+            p.predict(past(19, 20), &[0.0; 3], &[0.0; 3], 0.0, &mut out),
             Err(RolloutError::Length {
                 what: "past_u",
                 expected: 20,
                 found: 19
             })
         );
+        assert_eq!(
+            p.predict(past(20, 20), &[0.0; 3], &[0.0; 2], 0.0, &mut out),
+            Err(RolloutError::Length {
+                what: "future_et0",
+                expected: 3,
+                found: 2
+            })
+        );
+        assert!(
+            p.predict(past(20, 19), &[0.0; 3], &[0.0; 3], 0.0, &mut out)
+                .is_err()
+        );
         let mut jac = [0.0; 8];
         assert!(
-            p.predict_with_jacobian(&[0.0; 20], &[0.2; 20], &[0.0; 3], 0.0, &mut out, &mut jac)
+            p.predict_with_jacobian(past(20, 20), &[0.0; 3], &[0.0; 3], 0.0, &mut out, &mut jac)
                 .is_err()
         );
     }

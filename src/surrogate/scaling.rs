@@ -7,12 +7,17 @@
 //! * irrigation rate: logarithmic, ū = ln(1 + u/u₀)/ln(1 + u_max/u₀), which maps
 //!   [0, u_max] to [0, 1] and resolves the small rates (u₀ = 1e-8 m/s is the
 //!   rate below which the scale becomes linear). Its derivative is
-//!   dū/du = 1/((u₀ + u)·ln(1 + u_max/u₀)).
+//!   dū/du = 1/((u₀ + u)·ln(1 + u_max/u₀));
+//! * reference evapotranspiration ET0 [m/s]: linear, ē = ET0/ET0_ref, with
+//!   ET0_ref = 1e-7 m/s (8.64 mm/day), so the daily means of 0.5–8 mm/day
+//!   map to about 0.06–0.93 and the midday peaks stay below about 3.
 
 /// Default u₀ of the logarithmic input scaling [m/s].
 pub const DEFAULT_U0: f64 = 1e-8;
 /// Default largest irrigation rate u_max [m/s].
 pub const DEFAULT_U_MAX: f64 = 1e-5;
+/// Default ET0 rate mapped to 1 [m/s] (8.64 mm/day).
+pub const DEFAULT_ET0_REF: f64 = 1e-7;
 
 /// Logarithmic scaling of the irrigation rate u [m/s].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -75,11 +80,30 @@ impl OutputScaling {
     }
 }
 
-/// Both scalings of a surrogate.
+/// Linear scaling of the reference evapotranspiration rate ET0 [m/s].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Et0Scaling {
+    /// Rate mapped to 1 [m/s].
+    pub reference: f64,
+}
+
+impl Et0Scaling {
+    /// ē = ET0/ET0_ref; negative or non-finite rates count as 0.
+    pub fn scale(&self, et0: f64) -> f64 {
+        if et0.is_finite() {
+            et0.max(0.0) / self.reference
+        } else {
+            0.0
+        }
+    }
+}
+
+/// The scalings of a surrogate.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Scaling {
     pub input: InputScaling,
     pub output: OutputScaling,
+    pub et0: Et0Scaling,
 }
 
 impl Default for Scaling {
@@ -94,22 +118,31 @@ impl Default for Scaling {
                 y_min: 0.12,
                 y_max: 0.41,
             },
+            et0: Et0Scaling {
+                reference: DEFAULT_ET0_REF,
+            },
         }
     }
 }
 
 impl Scaling {
     /// Why the scaling is unusable, if it is: parameters must be finite with
-    /// 0 < u₀ < u_max and y_min < y_max.
+    /// 0 < u₀ < u_max, y_min < y_max and ET0_ref > 0.
     pub fn problem(&self) -> Option<&'static str> {
         let InputScaling { u0, u_max } = self.input;
         let OutputScaling { y_min, y_max } = self.output;
-        if ![u0, u_max, y_min, y_max].iter().all(|v| v.is_finite()) {
+        let reference = self.et0.reference;
+        if ![u0, u_max, y_min, y_max, reference]
+            .iter()
+            .all(|v| v.is_finite())
+        {
             Some("scaling parameters must be finite")
         } else if !(u0 > 0.0 && u_max > u0) {
             Some("input scaling needs 0 < u0 < u_max")
         } else if y_max <= y_min {
             Some("output scaling needs y_min < y_max")
+        } else if reference <= 0.0 {
+            Some("ET0 scaling needs et0_ref > 0")
         } else {
             None
         }

@@ -8,8 +8,8 @@
 //!   applied over step k, y[k] the output at its end. Sample k (20 ≤ k,
 //!   k + H ≤ len, H = [`SequenceData::horizon`]) is an H-step recursive
 //!   prediction exactly as the controller makes it: the recurrence is warmed up
-//!   on (ū[j], ȳ[j − 1]), j = k − 19..k, then predicts ŷ[k + q], q = 0..H,
-//!   from (ū[k + q], ŷ[k + q − 1]) with ŷ[k − 1] = ȳ[k − 1] (free run: the
+//!   on (ū[j], ȳ[j − 1], ē[j]), j = k − 19..k, then predicts ŷ[k + q], q = 0..H,
+//!   from (ū[k + q], ŷ[k + q − 1], ē[k + q]) with ŷ[k − 1] = ȳ[k − 1] (free run: the
 //!   network is fed its own predictions, as in closed loop). The sample loss
 //!   is the mean of the H squared errors; the fed-back predictions are treated
 //!   as data in the backward pass (truncated: no gradient through the
@@ -44,6 +44,8 @@ pub struct SequenceData {
     pub u: Vec<f64>,
     /// Scaled outputs ȳ[k] (at the end of step k).
     pub y: Vec<f64>,
+    /// Scaled ET0 ē[k] (over step k).
+    pub e: Vec<f64>,
     /// Steps H of the recursive prediction each sample is scored on.
     pub horizon: usize,
     /// Outputs the input windows read instead of `y` (same length), or empty
@@ -63,22 +65,33 @@ impl SequenceData {
         SequenceData {
             u: Vec::new(),
             y: Vec::new(),
+            e: Vec::new(),
             horizon: horizon.max(1),
             y_input: Vec::new(),
         }
     }
 
-    /// Appends a raw series (u [m/s], y [m³/m³], equal lengths) after scaling
-    /// it, and returns the indices of its samples: sequences never cross from
-    /// one appended series into the next.
+    /// Appends a raw series (supply u [m/s], y [m³/m³], ET0 e [m/s], equal
+    /// lengths) after scaling it, and returns the indices of its samples:
+    /// sequences never cross from one appended series into the next.
     ///
     /// # Panics
-    /// If `u` and `y` differ in length.
-    pub fn push_series(&mut self, u: &[f64], y: &[f64], scaling: &Scaling) -> Vec<usize> {
-        assert_eq!(u.len(), y.len(), "series lengths differ");
+    /// If the lengths differ.
+    pub fn push_series(
+        &mut self,
+        u: &[f64],
+        y: &[f64],
+        e: &[f64],
+        scaling: &Scaling,
+    ) -> Vec<usize> {
+        assert!(
+            u.len() == y.len() && u.len() == e.len(),
+            "series lengths differ"
+        );
         let start = self.u.len();
         self.u.extend(u.iter().map(|&v| scaling.input.scale(v)));
         self.y.extend(y.iter().map(|&v| scaling.output.scale(v)));
+        self.e.extend(e.iter().map(|&v| scaling.et0.scale(v)));
         if !self.y_input.is_empty() {
             self.y_input.extend_from_slice(&self.y[start..]);
         }
@@ -88,14 +101,23 @@ impl SequenceData {
             .collect()
     }
 
-    /// Writes the warm-up steps of sample k into `x` ((ū, ȳ) interleaved,
+    /// Writes the warm-up steps of sample k into `x` ((ū, ȳ, ē) interleaved,
     /// [`WINDOW`] − 1 steps).
     fn warm_up(&self, k: usize, x: &mut [f64]) {
         let s0 = k + 1 - WINDOW;
-        for (tau, pair) in x.chunks_exact_mut(FEATURES).take(WINDOW - 1).enumerate() {
-            pair[0] = self.u[s0 + tau];
-            pair[1] = self.window_y(s0 + tau - 1);
+        for (tau, step) in x.chunks_exact_mut(FEATURES).take(WINDOW - 1).enumerate() {
+            step[0] = self.u[s0 + tau];
+            step[1] = self.window_y(s0 + tau - 1);
+            step[2] = self.e[s0 + tau];
         }
+    }
+
+    /// Writes step q of sample k's prediction into step t of `x`: the input
+    /// and ET0 of step k + q beside the output `prev` fed back.
+    fn predict_step(&self, k: usize, q: usize, prev: f64, x: &mut [f64], t: usize) {
+        x[t * FEATURES] = self.u[k + q];
+        x[t * FEATURES + 1] = prev;
+        x[t * FEATURES + 2] = self.e[k + q];
     }
 
     /// The output at step i as an input window sees it.
@@ -143,8 +165,7 @@ fn roll_sample(
         let t = WINDOW - 1 + q;
         let mut z = [0.0; COMBINER_INPUTS];
         for (i, (net, w)) in nets.iter().zip(ws.iter_mut()).enumerate() {
-            w.x[t * FEATURES] = data.u[k + q];
-            w.x[t * FEATURES + 1] = prev[i];
+            data.predict_step(k, q, prev[i], &mut w.x, t);
             net.advance(w, t, t + 1);
             z[i] = net.output(w, t);
         }
@@ -263,8 +284,7 @@ impl Trainable for SequenceNet {
         let mut loss = 0.0;
         for q in 0..h {
             let t = WINDOW - 1 + q;
-            ws.x[t * FEATURES] = data.u[k + q];
-            ws.x[t * FEATURES + 1] = prev;
+            data.predict_step(k, q, prev, &mut ws.x, t);
             self.advance(ws, t, t + 1);
             let out = self.output(ws, t);
             let e = out - data.y[k + q];
@@ -748,6 +768,7 @@ mod tests {
             y = 0.9 * y + 0.1 * u;
             data.u.push(u);
             data.y.push(y);
+            data.e.push(0.5);
         }
         data
     }
@@ -769,22 +790,29 @@ mod tests {
         let scaling = Scaling::default();
         let u: Vec<f64> = (0..30).map(|k| k as f64 * 1e-7).collect();
         let y: Vec<f64> = (0..30).map(|k| 0.12 + 0.01 * k as f64).collect();
+        let e: Vec<f64> = (0..30).map(|k| (k + 1) as f64 * 1e-9).collect();
         let mut data = SequenceData::new(3);
         // sample k needs y[k − 20] and y[k + 2]
-        assert_eq!(data.push_series(&u[..24], &y[..24], &scaling), vec![20, 21]);
+        assert_eq!(
+            data.push_series(&u[..24], &y[..24], &e[..24], &scaling),
+            vec![20, 21]
+        );
         // a second series: its samples start 20 after its own beginning
         assert_eq!(
-            data.push_series(&u, &y, &scaling),
+            data.push_series(&u, &y, &e, &scaling),
             (44..52).collect::<Vec<_>>()
         );
-        let mut x = vec![0.0; 2 * WINDOW];
+        let mut x = vec![0.0; FEATURES * WINDOW];
         data.warm_up(21, &mut x);
-        // first warm-up step: the input applied over step 2 and the output of step 1;
-        // last: the input over step 20 and the output of step 19
+        // first warm-up step: the input and ET0 over step 2 and the output
+        // of step 1; last: those over step 20 and the output of step 19
         assert_eq!(x[0], scaling.input.scale(u[2]));
         assert_eq!(x[1], scaling.output.scale(y[1]));
-        assert_eq!(x[2 * WINDOW - 4], scaling.input.scale(u[20]));
-        assert_eq!(x[2 * WINDOW - 3], scaling.output.scale(y[19]));
+        assert_eq!(x[2], scaling.et0.scale(e[2]));
+        let last = FEATURES * (WINDOW - 2);
+        assert_eq!(x[last], scaling.input.scale(u[20]));
+        assert_eq!(x[last + 1], scaling.output.scale(y[19]));
+        assert_eq!(x[last + 2], scaling.et0.scale(e[20]));
         assert_eq!(
             holdout(&[1, 2, 3, 4, 5, 6, 7, 8, 9, 10], 0.2),
             (vec![1, 2, 3, 4, 5, 6, 7, 8], vec![9, 10])
@@ -797,8 +825,9 @@ mod tests {
         let scaling = Scaling::default();
         let u: Vec<f64> = (0..40).map(|k| ((k % 7) as f64) * 1e-6).collect();
         let y: Vec<f64> = (0..40).map(|k| 0.2 + 0.002 * k as f64).collect();
+        let e: Vec<f64> = (0..40).map(|k| ((k % 12) as f64) * 1e-8).collect();
         let mut data = SequenceData::new(5);
-        data.push_series(&u, &y, &scaling);
+        data.push_series(&u, &y, &e, &scaling);
         let net = SequenceNet::new(&[3], 11);
         let mut tw = net.new_workspace();
         let loss = net.sample_loss(&mut tw, &data, 25);
@@ -807,7 +836,12 @@ mod tests {
             scaling,
         );
         let mut out = [0.0; 5];
-        p.predict(&u[5..25], &y[5..25], &u[25..30], 0.0, &mut out)
+        let past = crate::surrogate::Past {
+            u: &u[5..25],
+            y: &y[5..25],
+            et0: &e[5..25],
+        };
+        p.predict(past, &u[25..30], &e[25..30], 0.0, &mut out)
             .unwrap();
         let expected = (0..5)
             .map(|q| (scaling.output.scale(out[q]) - data.y[25 + q]).powi(2))
@@ -876,8 +910,9 @@ mod tests {
         let y: Vec<f64> = (0..30)
             .map(|k| 0.2 + 0.1 * (k as f64 / 5.0).sin())
             .collect();
+        let e: Vec<f64> = (0..30).map(|k| 3e-8 * (1.0 + (k as f64).cos())).collect();
         let mut data = SequenceData::new(1);
-        data.push_series(&u, &y, &scaling);
+        data.push_series(&u, &y, &e, &scaling);
         let mut joint = JointTwoLayer::new(TwoLayerNet {
             sub_models: [
                 SequenceNet::new(&[2], 1),

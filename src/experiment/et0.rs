@@ -1,0 +1,218 @@
+//! The weather experiment (issue 17): does the two-layer ZMPC know the
+//! weather? Five-day seasons whose ET0 is held at 1.5, 4 and 7 mm/day or
+//! rises from 2 to 7 mm/day, and weather-rain, each run by the oracle (the
+//! Richards ZMPC on the plant's true soil and state, the yardstick), by the
+//! two-layer ZMPC fed the forecast ET0, and by the same network told a
+//! constant 4 mm/day (the training weather of the networks without ET0).
+//!
+//! Conditions: the models' own soil, 2 % process and 2 % measurement noise,
+//! 20 % forecast error, the time-invariant zone, 60 steps from θ0 of MODEL.md
+//! §1, seed `--seed`.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+use crate::control::{
+    ClosedLoopRun, ClosedLoopSettings, Controller, MpcSettings, ZoneSettings, run_closed_loop,
+};
+use crate::soil::FieldSettings;
+use crate::weather::{DRY_SCENARIO, RAIN_SCENARIO, WeatherSeries, WeatherStep};
+
+use super::closed_loop::{BIAS_PERIOD, Models};
+use super::{ExperimentError, ExperimentOptions, write_file};
+
+/// Steps of a day (2-h steps).
+const STEPS_PER_DAY: usize = 12;
+/// The daily ET0 of the dry scenario, whose diurnal shape the seasons keep.
+const DRY_DAILY_MM: f64 = 4.0;
+
+/// One season: its name and weather.
+struct Season {
+    name: String,
+    weather: WeatherSeries,
+}
+
+fn parse(text: &str, name: &str) -> Result<WeatherSeries, ExperimentError> {
+    WeatherSeries::parse(text, name).map_err(|e| ExperimentError::Input(e.to_string()))
+}
+
+/// The dry scenario's 60 steps with each day's ET0 scaled to `daily(day)`
+/// mm/day (no rain).
+fn scaled_dry(daily: impl Fn(usize) -> f64) -> Result<WeatherSeries, ExperimentError> {
+    let dry = parse(DRY_SCENARIO, "embedded weather-dry.csv")?;
+    let steps = dry
+        .steps()
+        .iter()
+        .enumerate()
+        .map(|(k, w)| WeatherStep {
+            et0_mm: w.et0_mm * daily(k / STEPS_PER_DAY) / DRY_DAILY_MM,
+            precip_mm: 0.0,
+            ..*w
+        })
+        .collect();
+    Ok(WeatherSeries::new(steps))
+}
+
+fn seasons() -> Result<Vec<Season>, ExperimentError> {
+    let mut out = Vec::new();
+    for mm in [1.5, 4.0, 7.0] {
+        out.push(Season {
+            name: format!("ET0 {mm} mm/day"),
+            weather: scaled_dry(|_| mm)?,
+        });
+    }
+    out.push(Season {
+        name: "ET0 2 → 7 mm/day".into(),
+        // day 0 at 2, day 4 at 7, in equal steps
+        weather: scaled_dry(|d| 2.0 + 5.0 * d.min(4) as f64 / 4.0)?,
+    });
+    out.push(Season {
+        name: "weather-rain".into(),
+        weather: parse(RAIN_SCENARIO, "embedded weather-rain.csv")?,
+    });
+    Ok(out)
+}
+
+/// The controllers compared.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Runner {
+    Oracle,
+    TwoLayer,
+    /// The two-layer network told 4 mm/day (the dry scenario's ET0).
+    TwoLayerHeld,
+}
+
+fn run_one(
+    runner: Runner,
+    models: &Models,
+    weather: &WeatherSeries,
+    seed: u64,
+) -> Result<ClosedLoopRun, ExperimentError> {
+    let mpc = MpcSettings {
+        zone: ZoneSettings::default(),
+        theta_r: models.field.soil.residual_water_content,
+        theta_s: models.field.soil.saturated_water_content,
+        ..MpcSettings::default()
+    };
+    let told_et0 = match runner {
+        Runner::TwoLayerHeld => Some(
+            parse(DRY_SCENARIO, "embedded weather-dry.csv")?
+                .steps()
+                .iter()
+                .map(|w| w.et0_mm)
+                .collect(),
+        ),
+        _ => None,
+    };
+    let settings = ClosedLoopSettings {
+        field: FieldSettings {
+            process_noise: 0.02,
+            measurement_noise: 0.02,
+            seed,
+            ..models.field
+        },
+        forecast_error: 0.2,
+        forecast_seed: seed.wrapping_add(1000),
+        told_et0,
+        ..ClosedLoopSettings::default()
+    };
+    let dt = settings.field.sampling_time;
+    let mut make = |first: f64| match runner {
+        Runner::Oracle => Controller::oracle(mpc, dt),
+        Runner::TwoLayer | Runner::TwoLayerHeld => {
+            Controller::surrogate(mpc, models.two_layer.predictor(), BIAS_PERIOD, first, dt)
+        }
+    };
+    run_closed_loop(&settings, weather, &mut make)
+        .map_err(|e| ExperimentError::Input(format!("closed loop: {e}")))
+}
+
+/// One season's three runs: oracle, two-layer, two-layer told 4 mm/day.
+pub struct SeasonResult {
+    pub name: String,
+    pub oracle: ClosedLoopRun,
+    pub two_layer: ClosedLoopRun,
+    pub held: ClosedLoopRun,
+}
+
+/// Runs every season (in parallel, one season per task).
+pub fn season_results(models: &Models, seed: u64) -> Result<Vec<SeasonResult>, ExperimentError> {
+    use rayon::prelude::*;
+    seasons()?
+        .into_par_iter()
+        .map(|s| {
+            Ok(SeasonResult {
+                oracle: run_one(Runner::Oracle, models, &s.weather, seed)?,
+                two_layer: run_one(Runner::TwoLayer, models, &s.weather, seed)?,
+                held: run_one(Runner::TwoLayerHeld, models, &s.weather, seed)?,
+                name: s.name,
+            })
+        })
+        .collect()
+}
+
+fn percent(value: f64, reference: f64) -> f64 {
+    100.0 * (value - reference) / reference
+}
+
+/// The weather experiment: `et0.md` and `et0.csv`.
+pub fn et0(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> {
+    let models = Models::load(options)?;
+    let results = season_results(&models, options.seed)?;
+    let mut md = format!(
+        "# The weather: ET0 and rain\n\n\
+         The two-layer ZMPC fed the forecast ET0, and the same network told a constant \
+         4 mm/day (the dry scenario's ET0, blind to the season), against the oracle (the \
+         Richards ZMPC on the plant's true soil and state). Soil {}, 2 % process and 2 % \
+         measurement noise, 20 % forecast error, time-invariant zone [0.18, 0.23], 60 steps \
+         of 2 h, seed {}. The seasons keep weather-dry's diurnal shape with each day's ET0 \
+         scaled. Dry-side violation: mean of max(0, 0.18 − θ_true) [m³/m³]. Targets \
+         (issue 17): I_T within 5 % of the oracle's, dry-side violation at most 1e-4 above \
+         the oracle's.\n\n\
+         | season | oracle I_T [mm] | oracle dry viol. | two-layer I_T [mm] | Δ [%] | dry viol. | Δ dry viol. | told 4 mm/day: I_T [mm] | Δ [%] | dry viol. | Δ dry viol. |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        models.two_layer.metadata.soil, options.seed
+    );
+    let mut csv = String::from(
+        "season,controller,irrigation_mm,dry_violation,wet_violation_after_entry,zone_violation,solve_median_ms,fallbacks\n",
+    );
+    for r in &results {
+        let (o, t, h) = (&r.oracle, &r.two_layer, &r.held);
+        let _ = writeln!(
+            md,
+            "| {} | {:.2} | {:.2e} | {:.2} | {:+.1} | {:.2e} | {:+.1e} | {:.2} | {:+.1} | {:.2e} | {:+.1e} |",
+            r.name,
+            o.total_irrigation_mm(),
+            o.dry_violation(),
+            t.total_irrigation_mm(),
+            percent(t.total_irrigation_mm(), o.total_irrigation_mm()),
+            t.dry_violation(),
+            t.dry_violation() - o.dry_violation(),
+            h.total_irrigation_mm(),
+            percent(h.total_irrigation_mm(), o.total_irrigation_mm()),
+            h.dry_violation(),
+            h.dry_violation() - o.dry_violation(),
+        );
+        for (name, run) in [
+            ("oracle", o),
+            ("two-layer", t),
+            ("two-layer told 4 mm/day", h),
+        ] {
+            let _ = writeln!(
+                csv,
+                "{},{name},{},{},{},{},{},{}",
+                r.name,
+                run.total_irrigation_mm(),
+                run.dry_violation(),
+                run.wet_violation_after_entry(),
+                run.zone_violation(),
+                run.solve_times().median_ms,
+                run.fallbacks()
+            );
+        }
+    }
+    Ok(vec![
+        write_file(&options.out.join("et0.md"), &md)?,
+        write_file(&options.out.join("et0.csv"), &csv)?,
+    ])
+}
