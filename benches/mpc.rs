@@ -6,10 +6,16 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use rootzone::control::{MpcSettings, RichardsModel, SurrogateModel, ZoneMpc};
 use rootzone::soil::{Field, FieldSettings};
 use rootzone::surrogate::ModelFile;
-use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
+use rootzone::weather::{DRY_SCENARIO, WeatherSeries, mm_to_rate};
 
 fn solve(c: &mut Criterion) {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    // the dry scenario's ET0 (4 mm/day): the window's 20 steps, then the
+    // horizon's, from midnight
+    let dry = WeatherSeries::parse(DRY_SCENARIO, "dry").expect("embedded weather");
+    let et0: Vec<f64> = (0..40)
+        .map(|k| mm_to_rate(dry.steps()[k % 12].et0_mm, 7200.0))
+        .collect();
     for (file, name) in [
         ("two-layer.json", "two-layer"),
         ("single-lstm.json", "single-lstm"),
@@ -22,8 +28,9 @@ fn solve(c: &mut Criterion) {
                     .map(|i| if i % 6 == 0 { 3e-6 } else { 0.0 })
                     .collect(),
                 vec![level; 20],
-                (0..20).map(|i| 4.6e-8 * (i % 12) as f64 / 6.0).collect(),
+                et0[..20].to_vec(),
             );
+            model.et0 = et0[20..].to_vec();
             c.bench_function(&format!("zone-mpc-{name}/{case}"), |b| {
                 b.iter(|| {
                     // a cold controller every time: no warm start

@@ -7,7 +7,8 @@
 //!
 //! Arguments: the texture, the folder of a from-scratch training of it
 //! (`rootzone train --soil loam --out /tmp/models-loam`), and optionally
-//! the data seed (default 1). The fine-tuning runs on one thread with the
+//! the data seed (default 1) and, to try another plan than the daemon's
+//! default, the impulse samples, the sub-model samples and the epochs. The fine-tuning runs on one thread with the
 //! daemon's default plan; the data cache is a temporary folder, so the
 //! time includes generating the data.
 
@@ -24,7 +25,7 @@ use rootzone::surrogate::{ModelFile, Surrogate};
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: finetune TEXTURE FROM_SCRATCH_DIR [SEED]";
+    let usage = "usage: finetune TEXTURE FROM_SCRATCH_DIR [SEED [IMPULSE SUB EPOCHS]]";
     let (Some(texture), Some(scratch)) = (args.first(), args.get(1)) else {
         eprintln!("{usage}");
         std::process::exit(2);
@@ -33,12 +34,15 @@ fn main() {
         eprintln!("{usage}: {e}");
         std::process::exit(2)
     });
-    let seed: u64 = args.get(2).map_or(1, |s| {
-        s.parse().unwrap_or_else(|_| {
-            eprintln!("{usage}: the seed must be a whole number");
-            std::process::exit(2)
+    let number = |i: usize, default: u64| -> u64 {
+        args.get(i).map_or(default, |s| {
+            s.parse().unwrap_or_else(|_| {
+                eprintln!("{usage}: argument {} must be a whole number", i + 1);
+                std::process::exit(2)
+            })
         })
-    });
+    };
+    let seed = number(2, 1);
     let soil = texture.parameters();
     let name = texture.to_string();
     let shipped = ModelFile::load(
@@ -51,7 +55,10 @@ fn main() {
         panic!("the shipped two-layer file holds a two-layer model");
     };
     let cache = tempfile::tempdir().expect("a temporary folder");
-    let plan = FineTunePlan::default_job();
+    let mut plan = FineTunePlan::default_job();
+    plan.impulse_samples = number(3, plan.impulse_samples as u64) as usize;
+    plan.sub_model_samples = number(4, plan.sub_model_samples as u64) as usize;
+    plan.config.max_epochs = number(5, plan.config.max_epochs as u64) as usize;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()

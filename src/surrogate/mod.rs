@@ -2,11 +2,12 @@
 //!
 //! Layout, bottom up:
 //!
-//! * [`scaling`]: ū = ln(1 + u/u₀)/ln(1 + u_max/u₀), ȳ = min-max of y;
+//! * [`scaling`]: ū = ln(1 + u/u₀)/ln(1 + u_max/u₀), ȳ = min-max of y,
+//!   ē = ET0/ET0_ref;
 //! * `dense`, `lstm` (private): kernels on flat parameter slices, forward and
 //!   backward (parameter and input gradients), allocation-free;
 //! * [`network`]: [`SequenceNet`] (1–2 LSTM layers + dense head over a
-//!   20-step window of (ū, ȳ)), [`Mlp`] (the combiner M_A), [`TwoLayerNet`]
+//!   20-step window of (ū, ȳ, ē)), [`Mlp`] (the combiner M_A), [`TwoLayerNet`]
 //!   and [`Surrogate`] (either prediction model);
 //! * [`train`]: Adam with parallel, deterministic mini-batch gradients and
 //!   early stopping;
@@ -19,8 +20,10 @@
 //! * [`dataset`], [`evaluate`]: training data from the simulator and
 //!   open-loop scoring.
 //!
-//! Time convention everywhere: u[k] is the rate applied over step k, y[k] the
-//! water content at its end; y[k] is predicted from ū[k − 19..=k], ȳ[k − 20..k].
+//! Time convention everywhere: u[k] is the rate applied over step k (the
+//! supply, irrigation + rain), ET0[k] the reference evapotranspiration over
+//! it, y[k] the water content at its end; y[k] is predicted from
+//! ū[k − 19..=k], ē[k − 19..=k], ȳ[k − 20..k].
 
 pub mod correction;
 pub mod dataset;
