@@ -117,8 +117,7 @@ impl Controller {
             if measured.is_finite() {
                 // the one-step prediction of the step just observed, under
                 // its observed ET0
-                model.et0 = vec![et0];
-                if let Ok(predicted) = model.one_step(supply) {
+                if let Ok(predicted) = model.one_step(supply, et0) {
                     if residuals.len() == *period {
                         residuals.pop_front();
                     }

@@ -117,27 +117,17 @@ impl SurrogateModel {
     }
 
     /// The prediction without the bias of the supply `u` (rain included)
-    /// over the next step, under the forecast ET0 of that step.
-    pub fn one_step(&mut self, u: f64) -> Result<f64, ModelError> {
+    /// over the next step, under the ET0 rate `et0` of that step.
+    pub fn one_step(&mut self, u: f64, et0: f64) -> Result<f64, ModelError> {
         let mut out = [0.0];
-        let (supply, e) = self.inputs(&[0.0]);
-        let result = self
-            .predictor
-            .predict(
-                Past {
-                    u: &self.past_u,
-                    y: &self.past_y,
-                    et0: &self.past_e,
-                },
-                &[u],
-                &e,
-                0.0,
-                &mut out,
-            )
-            .map_err(|e| ModelError(e.to_string()));
-        self.supply = supply;
-        self.horizon_e = e;
-        result?;
+        let past = Past {
+            u: &self.past_u,
+            y: &self.past_y,
+            et0: &self.past_e,
+        };
+        self.predictor
+            .predict(past, &[u], &[et0], 0.0, &mut out)
+            .map_err(|e| ModelError(e.to_string()))?;
         finite(&out)?;
         Ok(out[0])
     }

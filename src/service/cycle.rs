@@ -297,7 +297,12 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     }
     let predicted_next = match one_step.as_mut() {
         Some(model) => model
-            .one_step(rate + rain_rate.first().copied().unwrap_or(0.0))
+            .one_step(
+                rate + rain_rate.first().copied().unwrap_or(0.0),
+                weather
+                    .first()
+                    .map_or(0.0, |w| mm_to_rate(w.et0_mm, period)),
+            )
             .ok(),
         None => solution.predicted.first().copied(),
     }
