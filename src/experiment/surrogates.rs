@@ -25,11 +25,11 @@ use super::{ExperimentError, ExperimentOptions, write_file};
 use crate::soil::{FieldSettings, Texture};
 use crate::surrogate::correction::{CorrectionKind, CorrectionState};
 use crate::surrogate::dataset::{DatasetSpec, Series, load_or_generate};
-use crate::surrogate::evaluate::WINDOW;
+use crate::surrogate::evaluate::{WINDOW, past_at};
 use crate::surrogate::pipeline::{
     SINGLE_FILE, SUB_MODEL_FILES, TWO_LAYER_FILE, nrmse_scores, training_weather, validation_spec,
 };
-use crate::surrogate::{ModelFile, Past, Predictor};
+use crate::surrogate::{ModelFile, Predictor};
 
 /// The paper's E1 table: NRMSE of M1, M2, M3 at 1, 10, 20 steps.
 pub const PAPER_E1: [[f64; 3]; 3] = [
@@ -96,11 +96,7 @@ fn traces(predictor: &mut Predictor, series: &Series, from: usize, len: usize) -
         }
         let ok = predictor
             .predict(
-                Past {
-                    u: &supply[origin - WINDOW..origin],
-                    y: &series.measured[origin - WINDOW..origin],
-                    et0: &series.et0[origin - WINDOW..origin],
-                },
+                past_at(series, &supply, origin),
                 &supply[origin..origin + 20],
                 &series.et0[origin..origin + 20],
                 0.0,
@@ -304,11 +300,7 @@ pub fn corrected_mae(
         }
         if predictor
             .predict(
-                Past {
-                    u: &supply[t - WINDOW..t],
-                    y: &series.measured[t - WINDOW..t],
-                    et0: &series.et0[t - WINDOW..t],
-                },
+                past_at(series, &supply, t),
                 &supply[t..t + N],
                 &series.et0[t..t + N],
                 0.0,

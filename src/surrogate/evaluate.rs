@@ -7,6 +7,16 @@ use super::rollout::Past;
 /// Length of the input window p.
 pub const WINDOW: usize = 20;
 
+/// The window before step t of `series`: its supplies (`supply`, from
+/// [`Series::supply`]), noisy outputs and ET0 over steps t − 20..t.
+pub fn past_at<'a>(series: &'a Series, supply: &'a [f64], t: usize) -> Past<'a> {
+    Past {
+        u: &supply[t - WINDOW..t],
+        y: &series.measured[t - WINDOW..t],
+        et0: &series.et0[t - WINDOW..t],
+    }
+}
+
 /// NRMSE = RMSE/(y_max − y_min) of recursive predictions at each horizon in
 /// `horizons` (1-based steps ahead), over every `stride`-th start of `series`.
 ///
@@ -34,11 +44,7 @@ pub fn recursive_nrmse(
     let mut t = WINDOW;
     while t + longest <= series.len() {
         let predicted = predict(
-            Past {
-                u: &supply[t - WINDOW..t],
-                y: &series.measured[t - WINDOW..t],
-                et0: &series.et0[t - WINDOW..t],
-            },
+            past_at(series, &supply, t),
             &supply[t..t + longest],
             &series.et0[t..t + longest],
         );

@@ -578,32 +578,24 @@ pub enum Surrogate {
 }
 
 impl Surrogate {
-    pub fn n_params(&self) -> usize {
+    /// The parameter count, each sequence network's counted by `per_net`.
+    fn count(&self, per_net: fn(&SequenceNet) -> usize) -> usize {
         match self {
-            Surrogate::Single(net) => net.n_params(),
+            Surrogate::Single(net) => per_net(net),
             Surrogate::TwoLayer(m) => {
-                m.sub_models
-                    .iter()
-                    .map(SequenceNet::n_params)
-                    .sum::<usize>()
-                    + m.combiner.n_params()
+                m.sub_models.iter().map(per_net).sum::<usize>() + m.combiner.n_params()
             }
         }
+    }
+
+    pub fn n_params(&self) -> usize {
+        self.count(SequenceNet::n_params)
     }
 
     /// The parameter count of this architecture before ET0 (model files of
     /// version 1).
     pub fn legacy_n_params(&self) -> usize {
-        match self {
-            Surrogate::Single(net) => net.legacy_n_params(),
-            Surrogate::TwoLayer(m) => {
-                m.sub_models
-                    .iter()
-                    .map(SequenceNet::legacy_n_params)
-                    .sum::<usize>()
-                    + m.combiner.n_params()
-            }
-        }
+        self.count(SequenceNet::legacy_n_params)
     }
 
     /// Sets the parameters from those of the same architecture without the
