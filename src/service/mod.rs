@@ -675,10 +675,24 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, 
     }
 }
 
-/// A gained field's first cycle, if it has had none; else its latest
-/// boundary, run now unless a replica has run it
-/// (the replica that held the field died before, or during, its cycle);
-/// a boundary before the field existed is not one of its cycles.
+/// Most boundaries a gained field catches up on (newest first, each one no
+/// replica has run): a bound on the work a lease move can start.
+const CATCH_UP_BOUNDARIES: usize = 12;
+
+/// What a gained field has to catch up on.
+enum Due {
+    /// No setpoint yet: its first cycle.
+    First(Field),
+    /// The boundaries since its last cycle that no replica has run,
+    /// oldest first (at most [`CATCH_UP_BOUNDARIES`]).
+    Missed(Field, Vec<DateTime<Utc>>),
+}
+
+/// A gained field's first cycle, if it has had none; else every boundary
+/// since its last cycle that no replica has run, oldest first (the replica
+/// that held the field died before, or during, those cycles; boundaries
+/// can pass while this one catches up, so it looks again until none is
+/// left); a boundary before the field existed is not one of its cycles.
 async fn catch_up(state: &Arc<AppState>, id: i64) {
     // a field created within the last lease gets its first cycle from the
     // replica that created it (in the request): this one waits that long
@@ -697,37 +711,52 @@ async fn catch_up(state: &Arc<AppState>, id: i64) {
             state.clock.sleep_until(settled).await;
         }
     }
-    let engine = state.engine.clone();
-    let now = state.clock.now();
-    let due = tokio::task::spawn_blocking(
-        move || -> Result<Option<(Field, DateTime<Utc>)>, store::StoreError> {
+    // each round runs what it found; one more finds nothing (or what
+    // passed meanwhile)
+    for _ in 0..3 {
+        let engine = state.engine.clone();
+        let now = state.clock.now();
+        let due = tokio::task::spawn_blocking(move || -> Result<Option<Due>, store::StoreError> {
             let Some(field) = engine.store.field(id)? else {
                 return Ok(None);
             };
             if engine.store.recent_setpoints(id, 1)?.is_empty() {
-                // a field without a setpoint yet: its first cycle, now
-                return Ok(Some((field, now)));
+                return Ok(Some(Due::First(field)));
             }
-            let boundary = clock::boundary_at_or_before(now, field.spec.control_period_s);
-            if boundary < field.created_at
-                || !engine.store.cycle_runs(id, boundary, boundary)?.is_empty()
+            let period = field.spec.control_period_s;
+            let mut boundary = clock::boundary_at_or_before(now, period);
+            let mut missed = Vec::new();
+            while missed.len() < CATCH_UP_BOUNDARIES
+                && boundary >= field.created_at
+                && engine.store.cycle_runs(id, boundary, boundary)?.is_empty()
             {
-                return Ok(None);
+                missed.push(boundary);
+                boundary = clock::add_seconds(boundary, -period);
             }
-            Ok(Some((field, boundary)))
-        },
-    )
-    .await;
-    if let Ok(Ok(Some((field, boundary)))) = due
-        && state.holds(id)
-    {
-        if boundary == now {
-            first_cycle(state, &field).await;
+            missed.reverse();
+            Ok(Some(Due::Missed(field, missed)))
+        })
+        .await;
+        if !state.holds(id) {
             return;
         }
-        tracing::info!(field = id, at = %boundary, "catching up a boundary no replica has run");
-        if let Err(e) = run_cycle(state, field, boundary, true).await {
-            tracing::warn!(field = id, at = %boundary, error = %e, "catch-up cycle failed");
+        match due {
+            Ok(Ok(Some(Due::First(field)))) => {
+                first_cycle(state, &field).await;
+                return;
+            }
+            Ok(Ok(Some(Due::Missed(field, missed)))) if !missed.is_empty() => {
+                for boundary in missed {
+                    if !state.holds(id) {
+                        return;
+                    }
+                    tracing::info!(field = id, at = %boundary, "catching up a boundary no replica has run");
+                    if let Err(e) = run_cycle(state, field.clone(), boundary, true).await {
+                        tracing::warn!(field = id, at = %boundary, error = %e, "catch-up cycle failed");
+                    }
+                }
+            }
+            _ => return,
         }
     }
 }
