@@ -1,6 +1,7 @@
 //! Twin experiments of the estimator, for choosing its method and settings:
 //! `cargo run --release --example estimate_twin -- [members] [sqrt|po] [head_infl] [param_infl] [localisation|none] [texture|unknown] [0|1|2|loam|sand|…] [steps] [dry|rain] [depths]`
-//! (environment: SEL = selection updates, MPT = members per texture)
+//! (environment: SEL = selection updates, MPT = members per texture, RTOL =
+//! the members' relative tolerance, the absolute one a hundredth of it)
 //! prints sensor and profile RMS errors after the first day, the parameter
 //! estimates and the cost per predict+update.
 
@@ -28,6 +29,10 @@ fn main() {
     let variant = get(6, "0");
     let steps: usize = get(7, "60").parse().unwrap();
     let weather_name = get(8, "dry");
+    let rtol: f64 = std::env::var("RTOL")
+        .map_or(EstimatorSettings::default().relative_tolerance, |v| {
+            v.parse().unwrap()
+        });
     let base = match variant.as_str() {
         "1" => VanGenuchten {
             saturated_conductivity: 1.23e-5 * 0.5,
@@ -103,6 +108,8 @@ fn main() {
                 localisation,
                 selection_updates: std::env::var("SEL").map_or(12, |v| v.parse().unwrap()),
                 members_per_texture: std::env::var("MPT").map_or(4, |v| v.parse().unwrap()),
+                relative_tolerance: rtol,
+                absolute_tolerance: rtol * 1e-2,
                 ..EstimatorSettings::default()
             },
         )

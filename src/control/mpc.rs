@@ -22,7 +22,8 @@
 //! at the QP's plan, not taken from the QP solver, whose tolerance would
 //! swamp small steps); Δ grows after good steps and shrinks after poor ones.
 //! The iteration stops when a step changes no input by more than
-//! `step_tolerance` or the predicted decrease is negligible (converged), at
+//! `step_tolerance`, the predicted decrease is negligible, or three accepted
+//! steps in a row each gain less than that tolerance (converged), at
 //! the iteration cap, or at the time budget, and always returns the best plan evaluated.
 
 use std::sync::Arc;
@@ -37,6 +38,10 @@ use clarabel::solver::{
 use super::model::PredictionModel;
 use super::zone::ZoneSettings;
 use crate::soil::Interrupt;
+
+/// Consecutive accepted SQP steps, each gaining less than the objective
+/// tolerance, after which a run counts as converged.
+const STALL_STEPS: usize = 3;
 
 /// Settings of the zone MPC (defaults: MODEL.md §4).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -409,6 +414,7 @@ impl ZoneMpc {
         let mut status = SolveStatus::IterationCap;
         let mut iterations = 0;
         let mut trial_y = vec![0.0; n];
+        let mut stalled = 0;
         while iterations < s.max_iterations {
             if self.out_of_time() {
                 status = SolveStatus::TimeBudget;
@@ -439,6 +445,14 @@ impl ZoneMpc {
             };
             let rho = (j - trial) / predicted;
             if rho > 0.1 {
+                // a run that creeps (each accepted step gains less than the
+                // objective tolerance) has stalled at its optimum: the trust
+                // region is too small to leave it and too large to shrink
+                stalled = if j - trial < s.objective_tolerance * j {
+                    stalled + 1
+                } else {
+                    0
+                };
                 ubar = qp.ubar;
                 if model
                     .predict_with_jacobian(&raw(&ubar), &mut y, &mut jac)
@@ -457,6 +471,10 @@ impl ZoneMpc {
                     break;
                 }
                 j = objective(&s, &y, &ubar);
+                if stalled >= STALL_STEPS {
+                    status = SolveStatus::Converged;
+                    break;
+                }
                 if rho > 0.75 && step > 0.99 * radius {
                     radius = (2.0 * radius).min(1.0);
                 }
@@ -606,8 +624,8 @@ impl ZoneMpc {
                 .max_iter(100)
                 .presolve_enable(false)
                 .iterative_refinement_enable(false)
-                .tol_gap_abs(1e-12)
-                .tol_gap_rel(1e-10)
+                .tol_gap_abs(1e-10)
+                .tol_gap_rel(1e-9)
                 .build()
                 .map_err(|e| format!("QP settings: {e:?}"))?;
             let solver = DefaultSolver::new(&p, &q, &a, &b, &cones, settings)
