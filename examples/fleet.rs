@@ -14,7 +14,9 @@
 //! reads `cycle_runs` (each row's `done_at` is the database's wall clock at
 //! commit) and reports how many fields ran it, on which replica, and how
 //! long after the boundary (in wall seconds) the fields' cycles were
-//! committed: median, 99th percentile, last.
+//! committed: median, 99th percentile, last. It also reports when the
+//! replicas had stored every state estimate the cycles deferred (their
+//! `rootzone_deferred_estimates_pending` back at 0).
 //!
 //! `cargo build --release --bins --examples` first (the example starts
 //! `target/release/rootzone`), then
@@ -126,6 +128,29 @@ fn cpu_seconds(pids: &[u32]) -> f64 {
             Some((ut + st) / tick)
         })
         .sum()
+}
+
+/// The replicas' deferred-estimate queues, summed (their `/metrics`); None
+/// when one does not answer.
+async fn estimates_pending(http: &reqwest::Client, bases: &[String]) -> Option<i64> {
+    let mut sum = 0;
+    for base in bases {
+        let text = http
+            .get(format!("{base}/metrics"))
+            .send()
+            .await
+            .ok()?
+            .text()
+            .await
+            .ok()?;
+        sum += text
+            .lines()
+            .find_map(|l| l.strip_prefix("rootzone_deferred_estimates_pending "))?
+            .trim()
+            .parse::<f64>()
+            .ok()? as i64;
+    }
+    Some(sum)
 }
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
@@ -308,6 +333,37 @@ async fn main() {
             round + 1,
             cpu_seconds(&pids) - before
         );
+        // the state estimates the cycles deferred: when the replicas' queues
+        // ran empty after the boundary's last cycle (polled each wall second,
+        // until 20 wall-s before the next boundary's readings are sent)
+        let stop = clock.wall(next_boundary(b) - TimeDelta::seconds(280)) - TimeDelta::seconds(20);
+        loop {
+            let n: i64 = db
+                .query_one(
+                    "SELECT count(*) FROM cycle_runs WHERE boundary = $1",
+                    &[&b.timestamp_millis()],
+                )
+                .await
+                .expect("count")
+                .get(0);
+            let pending = estimates_pending(&http, &bases).await;
+            let after = (Utc::now() - clock.wall(b)).num_milliseconds() as f64 / 1e3;
+            if n as usize >= fields && pending == Some(0) {
+                println!(
+                    "boundary {}: every deferred state estimate stored by {after:.1} wall-s after it",
+                    round + 1
+                );
+                break;
+            }
+            if Utc::now() > stop {
+                println!(
+                    "boundary {}: {n} cycles, {pending:?} estimates still queued {after:.1} wall-s after it",
+                    round + 1
+                );
+                break;
+            }
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        }
     }
     // wait for the last boundary's cycles: all done, or a period gone by
     let last = *measured.last().expect("a boundary");

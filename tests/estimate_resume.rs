@@ -116,3 +116,84 @@ fn a_chain_of_cycles_estimates_as_one_pass_does_with_and_without_late_readings()
         "the late reading made no difference"
     );
 }
+
+/// A chain of scheduled cycles at the readings' times, on a daemon's
+/// engine (`defer`: estimates deferred and brought up to date after each
+/// cycle, except after the cycles of `skip`) or on one that brings them up
+/// to date in the cycle. Returns the setpoints' rates, the cycles that
+/// deferred, and the stored estimate at the end.
+fn scheduled_chain(
+    all: &[Measurement],
+    defer: bool,
+    skip: &[usize],
+) -> (Vec<f64>, Vec<usize>, StoredEstimate) {
+    use rootzone::store::CycleRun;
+    let dir = tempfile::tempdir().unwrap();
+    let (store, engine) = engine(dir.path());
+    let engine = engine.defer_estimates(defer);
+    let field = store.create_field(&spec(), all[0].time).unwrap();
+    let (mut rates, mut deferred) = (Vec::new(), Vec::new());
+    for (k, m) in all.iter().enumerate() {
+        store
+            .add_measurements(field.id, std::slice::from_ref(m))
+            .unwrap();
+        let run = CycleRun {
+            boundary: m.time,
+            replica: "r1",
+        };
+        let done = engine
+            .control_cycle(&field, m.time, Some(run))
+            .unwrap()
+            .expect("the boundary's first run");
+        rates.push(done.setpoint.rate);
+        if done.estimate_deferred {
+            deferred.push(k);
+            if !skip.contains(&k) {
+                assert!(engine.update_estimate(&field, m.time, "r1").unwrap());
+                assert_eq!(stored(&store, field.id).time, m.time);
+            }
+        }
+        if k > 0 && skip.contains(&(k - 1)) {
+            // the update of the cycle before, run after this cycle brought
+            // the estimate up to date itself: it changes nothing
+            let before = store.estimate(field.id).unwrap();
+            assert!(
+                !engine
+                    .update_estimate(&field, all[k - 1].time, "r1")
+                    .unwrap()
+            );
+            assert_eq!(store.estimate(field.id).unwrap(), before);
+        }
+    }
+    (rates, deferred, stored(&store, field.id))
+}
+
+#[test]
+fn estimates_deferred_past_their_cycles_end_where_the_cycles_own_do() {
+    let t0: DateTime<Utc> = "2026-06-01T00:00:00Z".parse().unwrap();
+    let all = readings(t0, 30);
+    let (rates, none, inline) = scheduled_chain(&all, false, &[]);
+    assert!(
+        none.is_empty(),
+        "an engine that does not defer deferred {none:?}"
+    );
+    // the window is all measured from the 20th reading on: those defer,
+    // except the one after a skipped update (its stored estimate is two
+    // periods behind, so it brings it up to date itself)
+    let (deferred_rates, deferred, after) = scheduled_chain(&all, true, &[]);
+    assert_eq!(deferred, (19..30).collect::<Vec<_>>());
+    assert_eq!(rates, deferred_rates, "deferring changed a setpoint");
+    assert_eq!(after.time, inline.time);
+    assert_eq!(
+        after.snapshot.members, inline.snapshot.members,
+        "the deferred estimates end elsewhere than the cycles' own"
+    );
+    let (skipped_rates, deferred, skipped) = scheduled_chain(&all, true, &[23]);
+    assert_eq!(
+        deferred,
+        (19..30).filter(|&k| k != 24).collect::<Vec<_>>(),
+        "the cycle after a missing update deferred again"
+    );
+    assert_eq!(rates, skipped_rates);
+    assert_eq!(skipped.snapshot.members, inline.snapshot.members);
+}

@@ -259,6 +259,86 @@ fn a_boundary_is_committed_once_with_its_estimate_and_setpoint() {
     }
 }
 
+#[test]
+fn a_deferred_estimate_replaces_only_the_one_it_started_from() {
+    for (store, url, _dir) in backends() {
+        let kind = store.kind();
+        let f = store.create_field(&spec("d"), at(NOW)).unwrap().id;
+        let lease = |holder: &str| {
+            if let Some(url) = &url {
+                let db = url.rsplit('/').next().unwrap();
+                Postgres::shared().psql(
+                    db,
+                    &format!(
+                        "DELETE FROM leases WHERE field_id = {f};
+                         INSERT INTO leases VALUES ({f}, '{holder}', clock_timestamp() + interval '1 hour', clock_timestamp())"
+                    ),
+                );
+            }
+        };
+        lease("r1");
+        // none stored: written only when none is expected
+        assert!(
+            !store
+                .replace_estimate(f, Some("{}"), "{\"e\":1}", "r1")
+                .unwrap(),
+            "{kind}"
+        );
+        assert!(
+            store.replace_estimate(f, None, "{\"e\":1}", "r1").unwrap(),
+            "{kind}"
+        );
+        assert!(
+            !store.replace_estimate(f, None, "{\"e\":9}", "r1").unwrap(),
+            "{kind}"
+        );
+        assert_eq!(
+            store.estimate(f).unwrap().as_deref(),
+            Some("{\"e\":1}"),
+            "{kind}"
+        );
+        // over the one it started from, not over another written meanwhile
+        assert!(
+            store
+                .replace_estimate(f, Some("{\"e\":1}"), "{\"e\":2}", "r1")
+                .unwrap(),
+            "{kind}"
+        );
+        assert!(
+            !store
+                .replace_estimate(f, Some("{\"e\":1}"), "{\"e\":3}", "r1")
+                .unwrap(),
+            "{kind}"
+        );
+        assert_eq!(
+            store.estimate(f).unwrap().as_deref(),
+            Some("{\"e\":2}"),
+            "{kind}"
+        );
+        if url.is_some() {
+            // on PostgreSQL, only while the replica holds the field
+            lease("r2");
+            assert!(
+                !store
+                    .replace_estimate(f, Some("{\"e\":2}"), "{\"e\":4}", "r1")
+                    .unwrap()
+            );
+            assert_eq!(store.estimate(f).unwrap().as_deref(), Some("{\"e\":2}"));
+            assert!(
+                store
+                    .replace_estimate(f, Some("{\"e\":2}"), "{\"e\":4}", "r2")
+                    .unwrap()
+            );
+        }
+        // a deleted field takes none
+        store.delete_field(f).unwrap();
+        assert!(
+            !store.replace_estimate(f, None, "{\"e\":5}", "r2").unwrap(),
+            "{kind}"
+        );
+    }
+}
+
 fn forecast(issued: DateTime<Utc>, et0: f64) -> Forecast {
     Forecast {
         issued_at: issued,

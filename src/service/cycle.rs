@@ -520,6 +520,19 @@ fn measured_samples(inputs: &CycleInputs) -> usize {
         .count()
 }
 
+/// Whether the surrogate window at `now` starts with a measurement, so that
+/// [`window`] synthesises none of it from the state estimate: a surrogate
+/// cycle's setpoint then does not depend on the estimate being brought up
+/// to `now` (the engine may defer that).
+pub fn window_is_measured(inputs: &CycleInputs) -> bool {
+    let period = inputs.field.spec.control_period_s;
+    let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
+    let end = inputs.now - period_d * (WINDOW - 1) as i32;
+    inputs
+        .before(end)
+        .is_some_and(|m| seconds(end - m.time) <= period)
+}
+
 /// The surrogate window at `now`: for each of the last 20 periods, the
 /// supply (the setpoint in force, plus the rain of a simulated field) and
 /// θ measured at its end. Before the first measurement the window is

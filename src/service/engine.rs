@@ -15,6 +15,7 @@ use crate::weather::WeatherStep;
 
 use super::cycle::{
     BIAS_PERIOD, CycleInputs, EstimateView, assimilate, climatology, decide, observed_weather,
+    window_is_measured,
 };
 use super::store::{CycleOutputs, CycleQuery, CycleRead, CycleRun, Store, StoreError};
 use super::wire::{Actuator, Field, Forecast, Measurement, Setpoint};
@@ -104,6 +105,9 @@ pub struct Engine {
     pub own_models: super::training::OwnModels,
     /// The polled forecast sources' staleness and rounding.
     forecasts: crate::adapters::forecast::ForecastSettings,
+    /// Whether a scheduled surrogate cycle may leave its state estimate to
+    /// [`Engine::update_estimate`] (see [`Engine::control_cycle`]).
+    defer_estimates: bool,
 }
 
 /// A failure of the work (not of the input).
@@ -128,12 +132,20 @@ impl Engine {
             cancel: Arc::default(),
             max_catch_up_s: super::settings::default_catch_up(),
             late_window_s: super::settings::default_late_window(),
+            defer_estimates: false,
             own_models: super::training::OwnModels::disabled(),
             forecasts: Default::default(),
         }
     }
 
     /// Where the fields' own surrogates are stored.
+    /// Lets scheduled surrogate cycles defer their state estimate (the
+    /// daemon does, with threads that run [`Engine::update_estimate`]).
+    pub fn defer_estimates(mut self, defer: bool) -> Engine {
+        self.defer_estimates = defer;
+        self
+    }
+
     pub fn own_models(mut self, own: super::training::OwnModels) -> Engine {
         self.own_models = own;
         self
@@ -630,8 +642,20 @@ impl Engine {
         )?;
         inputs.forecast = forecast;
         flags.extend(forecast_flag);
-        let (estimate, estimate_flags, estimate_body) =
-            self.estimate(field, now, &read, scenario)?;
+        // a scheduled surrogate cycle whose window is all measured plans on
+        // no estimate brought up to now (only a valve schedule reads the
+        // stored one): it leaves that to `update_estimate`, after its
+        // setpoint, unless the stored estimate is more than a period behind
+        let stored_view = match run {
+            Some(_) => self.deferrable(field, now, &inputs, &read, scenario.is_some()),
+            None => None,
+        };
+        let deferred = stored_view.is_some();
+        let (estimate, estimate_flags, estimate_body) = if let Some(view) = stored_view {
+            (Some(view), Vec::new(), None)
+        } else {
+            self.estimate(field, now, &read, scenario)?
+        };
         flags.extend(estimate_flags);
         inputs.estimate = estimate;
         inputs.degraded = flags;
@@ -669,7 +693,79 @@ impl Engine {
             setpoint,
             previous: inputs.recent.first().cloned(),
             theta: read.latest_primary.map(|m| m.theta),
+            estimate_deferred: deferred,
         }))
+    }
+
+    /// The stored estimate's view when this cycle may defer bringing the
+    /// estimate up to `now`: deferring is on, the cycle is scheduled, the
+    /// field is a surrogate one whose window is all measured, it is not
+    /// simulated (its plant stays with the cycles), and the stored estimate reached at least one period and a half
+    /// before `now` (so an estimate lags by at most a cycle, however
+    /// starved the deferred work is).
+    fn deferrable(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        inputs: &CycleInputs,
+        read: &CycleRead,
+        simulated: bool,
+    ) -> Option<EstimateView> {
+        let surrogate = matches!(
+            field.spec.model,
+            super::wire::ModelKind::TwoLayer | super::wire::ModelKind::Lstm
+        );
+        if !self.defer_estimates || simulated || !surrogate || !window_is_measured(inputs) {
+            return None;
+        }
+        let stored: StoredEstimate = serde_json::from_str(read.estimate.as_deref()?).ok()?;
+        let lag = (now - stored.time).as_seconds_f64();
+        if !(0.0..=1.5 * field.spec.control_period_s).contains(&lag) {
+            return None;
+        }
+        let est = Estimator::restore(stored.snapshot).ok()?;
+        Some(EstimateView {
+            heads: est.mean_heads(),
+            soil: est.soil(),
+            depth: est.settings().depth,
+        })
+    }
+
+    /// Brings a field's state estimate up to `now` after a cycle at `now`
+    /// that deferred it: the cycle's read again (readings at or before
+    /// `now` only, so the result is what the cycle would have stored,
+    /// counting any reading that came in late meanwhile), then
+    /// [`Engine::estimate`], stored only if the stored estimate is still
+    /// the one it started from and, on PostgreSQL, `replica` still holds
+    /// the field. Returns whether it was stored (false: the stored
+    /// estimate has reached `now` already, a later cycle or update came
+    /// first, or the lease moved; that one's estimate stands).
+    pub fn update_estimate(
+        &self,
+        field: &Field,
+        now: DateTime<Utc>,
+        replica: &str,
+    ) -> Result<bool, EngineError> {
+        let scenario = self.scenario(field)?;
+        let read = self
+            .store
+            .cycle_read(&self.cycle_query(field, now, scenario.is_some()))?;
+        let reached = read
+            .estimate
+            .as_deref()
+            .and_then(|b| serde_json::from_str::<StoredEstimate>(b).ok())
+            .map(|s| s.time);
+        if reached.is_some_and(|t| t >= now) {
+            // a later cycle brought it this far already
+            return Ok(false);
+        }
+        let (_, _, body) = self.estimate(field, now, &read, scenario)?;
+        let Some(body) = body else {
+            return Ok(false);
+        };
+        Ok(self
+            .store
+            .replace_estimate(field.id, read.estimate.as_deref(), &body, replica)?)
     }
 }
 
@@ -682,4 +778,6 @@ pub struct CycleDone {
     pub previous: Option<Setpoint>,
     /// The primary sensor's latest θ at or before the cycle.
     pub theta: Option<f64>,
+    /// The cycle left its state estimate to [`Engine::update_estimate`].
+    pub estimate_deferred: bool,
 }

@@ -30,6 +30,8 @@ pub struct Metrics {
     pub lease_age_seconds: prometheus::Gauge,
     pub database_up: IntGauge,
     pub replica: GaugeVec,
+    pub estimates_deferred: IntCounterVec,
+    pub estimates_pending: IntGauge,
 }
 
 impl Metrics {
@@ -185,8 +187,24 @@ impl Metrics {
             &["replica", "storage"],
         )
         .expect("valid metric");
+        let estimates_deferred = IntCounterVec::new(
+            Opts::new(
+                "rootzone_deferred_estimates_total",
+                "State estimates brought up to date after their cycle, by outcome \
+                 (updated; superseded: a later cycle or the lease came first; failed)",
+            ),
+            &["outcome"],
+        )
+        .expect("valid metric");
+        let estimates_pending = IntGauge::new(
+            "rootzone_deferred_estimates_pending",
+            "Fields whose state estimate waits to be brought up to date after their cycle",
+        )
+        .expect("valid metric");
         for c in [
             Box::new(cycles_refused.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(estimates_deferred.clone()),
+            Box::new(estimates_pending.clone()),
             Box::new(cycle_lateness_seconds.clone()),
             Box::new(leases_held.clone()),
             Box::new(lease_age_seconds.clone()),
@@ -235,6 +253,8 @@ impl Metrics {
             lease_age_seconds,
             database_up,
             replica,
+            estimates_deferred,
+            estimates_pending,
         }
     }
 

@@ -6,6 +6,7 @@ pub mod api;
 pub mod chart;
 pub mod clock;
 pub mod cycle;
+pub mod deferred;
 pub mod engine;
 pub mod explain;
 pub mod history;
@@ -62,6 +63,8 @@ pub enum ServeError {
 /// Shared state of the running daemon.
 pub struct AppState {
     pub engine: Arc<Engine>,
+    /// State estimates the cycles left to be brought up to date.
+    pub deferred: deferred::Deferred,
     pub clock: Clock,
     pub metrics: Metrics,
     pub token: String,
@@ -315,18 +318,29 @@ impl App {
             _ => None,
         };
         tracing::info!(replica = %replica, storage = store.kind(), "storage open");
+        let engine = Arc::new(
+            Engine::new(store, models)
+                .forecast_settings(settings.forecasts.clone())
+                .catch_up_limit(settings.limits.max_catch_up_s)
+                .late_window(settings.limits.late_window_s)
+                .own_models(own_models)
+                .defer_estimates(true),
+        );
+        let metrics = Metrics::new();
+        let deferred = deferred::Deferred::start(
+            engine.clone(),
+            replica.clone(),
+            settings.limits.worker_threads,
+            metrics.estimates_deferred.clone(),
+            metrics.estimates_pending.clone(),
+        );
         let state = Arc::new(AppState {
-            engine: Arc::new(
-                Engine::new(store, models)
-                    .forecast_settings(settings.forecasts.clone())
-                    .catch_up_limit(settings.limits.max_catch_up_s)
-                    .late_window(settings.limits.late_window_s)
-                    .own_models(own_models),
-            ),
+            engine,
+            deferred,
             training,
             mqtt,
             clock,
-            metrics: Metrics::new(),
+            metrics,
             token,
             replica,
             leases,
@@ -399,6 +413,7 @@ impl App {
         let result = server.await;
         state.shutdown.cancel();
         state.training.cancel_all();
+        state.deferred.stop();
         // a solve under way stops as at its time budget and stores its
         // fallback; whatever still runs after the grace period is left
         state
@@ -921,7 +936,12 @@ async fn run_cycle_in(
     // the permit bounds the cycles' computing, not their publishing
     drop(permit);
     let (setpoint, previous, theta) = match decided {
-        Ok(Ok(Some(done))) => (done.setpoint, done.previous, done.theta),
+        Ok(Ok(Some(done))) => {
+            if done.estimate_deferred {
+                state.deferred.push(field.clone(), at);
+            }
+            (done.setpoint, done.previous, done.theta)
+        }
         Ok(Ok(None)) => {
             tracing::info!("this boundary has run already (or the lease ended): not published");
             state.metrics.cycles_refused.inc();

@@ -157,7 +157,8 @@ pub struct Limits {
     #[serde(deserialize_with = "lenient_f64")]
     pub max_future_skew_s: f64,
     /// Threads of the blocking pool that runs control cycles and
-    /// simulations, 1 … 64.
+    /// simulations, 1 … 64; as many low-priority threads bring deferred
+    /// state estimates up to date (`service::deferred`).
     pub worker_threads: usize,
     /// Longest span [s of clock time] a simulated plant replays after a
     /// stop (or from a `simulation.start` in the past), in [0, 30 days];

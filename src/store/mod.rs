@@ -438,6 +438,22 @@ impl Store {
         dispatch!(self, b => b.estimate(field))
     }
 
+    /// Replaces a field's state estimate with `body` only if the stored one
+    /// is still `expected` (None: none stored), and, on PostgreSQL, only
+    /// while `replica` holds the field's lease: an estimate brought up to
+    /// date after its cycle ([`crate::service`]'s deferred estimates) never
+    /// overwrites one a later cycle wrote meanwhile. Returns whether it was
+    /// written.
+    pub fn replace_estimate(
+        &self,
+        field: i64,
+        expected: Option<&str>,
+        body: &str,
+        replica: &str,
+    ) -> Result<bool, StoreError> {
+        dispatch!(self, b => b.replace_estimate(field, expected, body, replica))
+    }
+
     /// A polled forecast source's state (JSON), by its key.
     pub fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
         dispatch!(self, b => b.forecast_source(key))

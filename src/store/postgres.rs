@@ -805,6 +805,52 @@ impl Postgres {
         self.document(read::ESTIMATE, Key::Field(field))
     }
 
+    /// The estimate replaced when the stored one is still `expected` and
+    /// `replica` holds a live lease of the field.
+    pub(super) fn replace_estimate(
+        &self,
+        field: i64,
+        expected: Option<&str>,
+        body: &str,
+        replica: &str,
+    ) -> Result<bool, StoreError> {
+        let (expected, body, replica) = (
+            expected.map(str::to_string),
+            body.to_string(),
+            replica.to_string(),
+        );
+        self.run(move |c| {
+            Box::pin(async move {
+                let leased = "EXISTS (SELECT 1 FROM leases WHERE field_id = $1 AND holder = $3
+                              AND expires_at > clock_timestamp())";
+                let n = match &expected {
+                    Some(old) => {
+                        c.execute(
+                            &format!(
+                                "UPDATE estimates SET body = $2
+                                 WHERE field_id = $1 AND body = $4 AND {leased}"
+                            ),
+                            &[&field, &body, &replica, old],
+                        )
+                        .await
+                    }
+                    None => {
+                        c.execute(
+                            &format!(
+                                "INSERT INTO estimates(field_id, body) SELECT $1, $2
+                                 WHERE {leased} ON CONFLICT(field_id) DO NOTHING"
+                            ),
+                            &[&field, &body, &replica],
+                        )
+                        .await
+                    }
+                }
+                .map_err(pg)?;
+                Ok(n == 1)
+            })
+        })
+    }
+
     pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
         self.document(read::FORECAST_SOURCE, Key::Text(key.to_string()))
     }

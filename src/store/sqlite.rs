@@ -602,6 +602,32 @@ impl Sqlite {
         self.with(|c| read::document(c, read::ESTIMATE, field))
     }
 
+    /// The estimate replaced when the stored one is still `expected` (one
+    /// process: no lease to check).
+    pub(super) fn replace_estimate(
+        &self,
+        field: i64,
+        expected: Option<&str>,
+        body: &str,
+        _replica: &str,
+    ) -> Result<bool, StoreError> {
+        self.with(|c| {
+            let n = match expected {
+                Some(old) => c.execute(
+                    "UPDATE estimates SET body = ?2 WHERE field_id = ?1 AND body = ?3",
+                    params![field, body, old],
+                )?,
+                None => c.execute(
+                    "INSERT INTO estimates(field_id, body) SELECT ?1, ?2
+                     WHERE EXISTS (SELECT 1 FROM fields WHERE id = ?1)
+                     ON CONFLICT(field_id) DO NOTHING",
+                    params![field, body],
+                )?,
+            };
+            Ok(n == 1)
+        })
+    }
+
     pub(super) fn forecast_source(&self, key: &str) -> Result<Option<String>, StoreError> {
         self.with(|c| read::document(c, read::FORECAST_SOURCE, key))
     }
