@@ -138,7 +138,6 @@ impl Engine {
         }
     }
 
-    /// Where the fields' own surrogates are stored.
     /// Lets scheduled surrogate cycles defer their state estimate (the
     /// daemon does, with threads that run [`Engine::update_estimate`]).
     pub fn defer_estimates(mut self, defer: bool) -> Engine {
@@ -146,6 +145,7 @@ impl Engine {
         self
     }
 
+    /// Where the fields' own surrogates are stored.
     pub fn own_models(mut self, own: super::training::OwnModels) -> Engine {
         self.own_models = own;
         self
@@ -700,9 +700,10 @@ impl Engine {
     /// The stored estimate's view when this cycle may defer bringing the
     /// estimate up to `now`: deferring is on, the cycle is scheduled, the
     /// field is a surrogate one whose window is all measured, it is not
-    /// simulated (its plant stays with the cycles), and the stored estimate reached at least one period and a half
-    /// before `now` (so an estimate lags by at most a cycle, however
-    /// starved the deferred work is).
+    /// simulated (its plant stays with the cycles), and the stored
+    /// estimate reached a time at most one period and a half before `now`
+    /// (so an estimate lags by at most a cycle, however starved the
+    /// deferred work is).
     fn deferrable(
         &self,
         field: &Field,
