@@ -30,6 +30,17 @@ pub struct ParamLengthError {
     pub found: usize,
 }
 
+impl ParamLengthError {
+    /// Ok when `found` parameters are the `expected` number.
+    fn check(expected: usize, found: usize) -> Result<(), ParamLengthError> {
+        if found == expected {
+            Ok(())
+        } else {
+            Err(ParamLengthError { expected, found })
+        }
+    }
+}
+
 /// Why an architecture is not accepted.
 pub(crate) fn lstm_architecture_problem(hidden: &[usize]) -> Option<String> {
     if hidden.is_empty() || hidden.len() > 2 {
@@ -52,12 +63,7 @@ fn uniform_draw(seed: u64) -> impl FnMut() -> f64 {
 }
 
 fn set_checked(dst: &mut [f64], src: &[f64]) -> Result<(), ParamLengthError> {
-    if dst.len() != src.len() {
-        return Err(ParamLengthError {
-            expected: dst.len(),
-            found: src.len(),
-        });
-    }
+    ParamLengthError::check(dst.len(), src.len())?;
     dst.copy_from_slice(src);
     Ok(())
 }
@@ -164,12 +170,7 @@ impl SequenceNet {
     /// network predicts exactly what the old one did, whatever ET0 is.
     pub fn params_from_legacy(&self, legacy: &[f64]) -> Result<Vec<f64>, ParamLengthError> {
         let expected = self.legacy_n_params();
-        if legacy.len() != expected {
-            return Err(ParamLengthError {
-                expected,
-                found: legacy.len(),
-            });
-        }
+        ParamLengthError::check(expected, legacy.len())?;
         // Wᵀ is input-major (one row of 4h per input): ē's row goes after ȳ's
         let row = 4 * self.layers[0].hidden;
         let mut p = Vec::with_capacity(self.n_params());
@@ -602,12 +603,7 @@ impl Surrogate {
     /// ET0 input (see [`SequenceNet::params_from_legacy`]).
     pub fn set_legacy_params(&mut self, legacy: &[f64]) -> Result<(), ParamLengthError> {
         let expected = self.legacy_n_params();
-        if legacy.len() != expected {
-            return Err(ParamLengthError {
-                expected,
-                found: legacy.len(),
-            });
-        }
+        ParamLengthError::check(expected, legacy.len())?;
         let mut widened = Vec::with_capacity(self.n_params());
         match self {
             Surrogate::Single(net) => widened = net.params_from_legacy(legacy)?,
@@ -642,12 +638,7 @@ impl Surrogate {
     /// Sets all parameters from the concatenation [`params`](Self::params) returns.
     pub fn set_params(&mut self, params: &[f64]) -> Result<(), ParamLengthError> {
         let expected = self.n_params();
-        if params.len() != expected {
-            return Err(ParamLengthError {
-                expected,
-                found: params.len(),
-            });
-        }
+        ParamLengthError::check(expected, params.len())?;
         match self {
             Surrogate::Single(net) => net.set_params(params),
             Surrogate::TwoLayer(m) => {
