@@ -130,6 +130,19 @@ fn cpu_seconds(pids: &[u32]) -> f64 {
         .sum()
 }
 
+/// How many fields have run boundary `b`'s cycle.
+async fn cycles_run(db: &tokio_postgres::Client, b: DateTime<Utc>) -> usize {
+    let n: i64 = db
+        .query_one(
+            "SELECT count(*) FROM cycle_runs WHERE boundary = $1",
+            &[&b.timestamp_millis()],
+        )
+        .await
+        .expect("count")
+        .get(0);
+    n as usize
+}
+
 /// The replicas' deferred-estimate queues, summed (their `/metrics`); None
 /// when one does not answer.
 async fn estimates_pending(http: &reqwest::Client, bases: &[String]) -> Option<i64> {
@@ -338,17 +351,10 @@ async fn main() {
         // until 20 wall-s before the next boundary's readings are sent)
         let stop = clock.wall(next_boundary(b) - TimeDelta::seconds(280)) - TimeDelta::seconds(20);
         loop {
-            let n: i64 = db
-                .query_one(
-                    "SELECT count(*) FROM cycle_runs WHERE boundary = $1",
-                    &[&b.timestamp_millis()],
-                )
-                .await
-                .expect("count")
-                .get(0);
+            let n = cycles_run(&db, b).await;
             let pending = estimates_pending(&http, &bases).await;
             let after = (Utc::now() - clock.wall(b)).num_milliseconds() as f64 / 1e3;
-            if n as usize >= fields && pending == Some(0) {
+            if n >= fields && pending == Some(0) {
                 println!(
                     "boundary {}: every deferred state estimate stored by {after:.1} wall-s after it",
                     round + 1
@@ -369,15 +375,8 @@ async fn main() {
     let last = *measured.last().expect("a boundary");
     let give_up = clock.wall(last) + TimeDelta::milliseconds((PERIOD_S / speedup * 1e3) as i64);
     loop {
-        let n: i64 = db
-            .query_one(
-                "SELECT count(*) FROM cycle_runs WHERE boundary = $1",
-                &[&last.timestamp_millis()],
-            )
-            .await
-            .expect("count")
-            .get(0);
-        if n as usize >= fields || Utc::now() > give_up {
+        let n = cycles_run(&db, last).await;
+        if n >= fields || Utc::now() > give_up {
             break;
         }
         tokio::time::sleep(Duration::from_millis(500)).await;
