@@ -367,6 +367,39 @@ fn richards_jacobian_from_integrator_tangents_matches_finite_differences() {
     eprintln!("largest difference / largest entry: {worst:e}");
 }
 
+/// The SQP takes a trial plan's prediction from the evaluation that also
+/// gives its Jacobian (`ZoneMpc::solve`): the tangents must leave the
+/// prediction as it is, bit for bit, on every texture and also where the
+/// plan ponds the surface (the integrator's robust path).
+#[test]
+fn the_richards_prediction_is_the_same_with_and_without_its_jacobian_on_every_texture() {
+    use rootzone::control::RichardsModel;
+    use rootzone::soil::{Field, FieldSettings, Texture};
+    use rootzone::weather::{RAIN_SCENARIO, WeatherSeries};
+    let weather = WeatherSeries::parse(RAIN_SCENARIO, "rain").unwrap();
+    let n = 6;
+    let plan = [1e-5, 0.0, 3e-6, 1e-5, 1e-7, 0.0];
+    for texture in Texture::ALL {
+        let field = Field::new(FieldSettings {
+            soil: texture.parameters(),
+            ..FieldSettings::default()
+        })
+        .unwrap();
+        // the rain scenario's wet days, from step 18
+        let mut model = RichardsModel::new(&field, &weather.steps()[18..18 + n]);
+        let (mut y, mut jac, mut plain) = (vec![0.0; n], vec![0.0; n * n], vec![0.0; n]);
+        model
+            .predict_with_jacobian(&plan, &mut y, &mut jac)
+            .unwrap();
+        model.predict(&plan, &mut plain).unwrap();
+        assert_eq!(y, plain, "{texture}: tangents changed the prediction");
+        assert!(
+            jac.iter().any(|&d| d > 0.0) && y.iter().any(|&t| t > field.water_content() + 1e-3),
+            "{texture}: the plan must wet the sensor"
+        );
+    }
+}
+
 /// The time budget binds every part of a solve: a Richards-model solve on a
 /// soil whose trial plans pond the surface ends within its budget plus the
 /// cost of one integration of one sampling step, and says how it ended.

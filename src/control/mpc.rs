@@ -136,6 +136,55 @@ pub fn objective(settings: &MpcSettings, y: &[f64], ubar: &[f64]) -> f64 {
     j
 }
 
+/// The constant plans, as fractions of u_max, from which [`ZoneMpc::solve`]
+/// also starts: spread over the logarithmic scale of the rate, in rising order.
+const START_LEVELS: [f64; 7] = [0.0, 0.002, 0.01, 0.05, 0.2, 0.5, 1.0];
+
+/// The constant plans of [`START_LEVELS`] (but `warm`) with their objective
+/// `j0` (from `objective_of`, `None` where the model failed), best first:
+/// those of the `runs` best that a solve whose best run so far has objective
+/// `cutoff` would still run (it stops at the first `j0 ≥ cutoff`), maybe
+/// followed by some it would not. A level whose input cost alone ranks it
+/// behind `runs` plans already evaluated, or reaches `cutoff`, is not
+/// evaluated, nor is any above it (their input cost is larger).
+fn start_candidates(
+    s: &MpcSettings,
+    warm: &[f64],
+    runs: usize,
+    cutoff: f64,
+    mut objective_of: impl FnMut(&[f64]) -> Option<f64>,
+) -> Vec<(f64, Vec<f64>)> {
+    let mut candidates: Vec<(f64, Vec<f64>)> = Vec::new();
+    for level in START_LEVELS {
+        let plan = vec![level; warm.len()];
+        if plan == warm {
+            continue;
+        }
+        // the objective with every prediction inside the zone: a lower
+        // bound of the true one, also in floating point (each term adds a
+        // non-negative Q·d²), rising with the level
+        let floor = input_cost(s, &plan);
+        let ranked_out = runs == 0 || candidates.get(runs - 1).is_some_and(|c| floor > c.0);
+        if ranked_out || floor >= cutoff {
+            break;
+        }
+        if let Some(j0) = objective_of(&plan) {
+            // kept in order (ties in level order, as a stable sort leaves them)
+            let at = candidates.partition_point(|c| c.0.total_cmp(&j0).is_le());
+            candidates.insert(at, (j0, plan));
+        }
+    }
+    candidates.truncate(runs);
+    candidates
+}
+
+/// The input part R·Σū² of [`objective`], summed in its order.
+fn input_cost(settings: &MpcSettings, ubar: &[f64]) -> f64 {
+    ubar.iter()
+        .map(|u| settings.r * u * u)
+        .fold(0.0, |j, t| j + t)
+}
+
 /// The metric of the trust region: t(ū) = ln(1 + ū/κ)/ln(1 + 1/κ) ∈ [0, 1],
 /// κ = knee/u_max. Irrigation acts on the soil (and on the surrogates'
 /// logarithmic input) over orders of magnitude: a linearisation at 1e-8 m/s
@@ -294,8 +343,17 @@ impl ZoneMpc {
     /// scale on which the surrogates see the rate), ranked by their
     /// objective (one prediction each), up to `starts` runs in all while the
     /// time budget lasts; the best plan wins. After a converged warm run,
-    /// only constant plans whose objective is already lower are run, so a
-    /// solve in a steady state costs one run plus seven predictions.
+    /// only constant plans whose objective is already lower are run.
+    ///
+    /// A constant plan's input cost R·Σū² bounds its objective from below.
+    /// The levels are predicted in rising order, and one whose input cost
+    /// alone ranks it behind `starts − 1` plans already predicted, or (after
+    /// a converged warm run) exceeds that run's objective, is not predicted,
+    /// nor is any level above it: it could not be chosen. The plans and the
+    /// result are those of predicting all seven; the skipped ones are the
+    /// dearest to integrate (at half and full rate a fine soil ponds), so a
+    /// solve in a steady state costs one run plus a few predictions of small
+    /// rates.
     pub fn solve(&mut self, model: &mut dyn PredictionModel) -> Solution {
         let start = Instant::now();
         // every model evaluation is bound by the budget: one that runs past
@@ -329,21 +387,22 @@ impl ZoneMpc {
         if matches!(best.status, SolveStatus::Fallback(_)) {
             return best;
         }
-        let mut candidates: Vec<(f64, Vec<f64>)> = Vec::new();
-        let mut y = vec![0.0; n];
-        for level in [0.0, 0.002, 0.01, 0.05, 0.2, 0.5, 1.0] {
-            let other = vec![level; n];
-            if other == warm {
-                continue;
-            }
-            let plan: Vec<f64> = other.iter().map(|v| v * s.u_max).collect();
-            if model.predict(&plan, &mut y).is_ok() {
-                candidates.push((objective(&s, &y, &other), other));
-            }
-        }
-        candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
         let warm_converged = warm_started && best.status == SolveStatus::Converged;
-        for (j0, other) in candidates.into_iter().take(s.starts.saturating_sub(1)) {
+        let runs = s.starts.saturating_sub(1);
+        let cutoff = if warm_converged {
+            best.objective
+        } else {
+            f64::INFINITY
+        };
+        let mut y = vec![0.0; n];
+        let candidates = start_candidates(&s, &warm, runs, cutoff, |plan| {
+            let rates: Vec<f64> = plan.iter().map(|v| v * s.u_max).collect();
+            model
+                .predict(&rates, &mut y)
+                .is_ok()
+                .then(|| objective(&s, &y, plan))
+        });
+        for (j0, other) in candidates.into_iter().take(runs) {
             if self.out_of_time() {
                 break;
             }
@@ -414,6 +473,7 @@ impl ZoneMpc {
         let mut status = SolveStatus::IterationCap;
         let mut iterations = 0;
         let mut trial_y = vec![0.0; n];
+        let mut trial_jac = vec![0.0; n * n];
         let mut stalled = 0;
         while iterations < s.max_iterations {
             if self.out_of_time() {
@@ -439,10 +499,14 @@ impl ZoneMpc {
                 status = SolveStatus::Converged;
                 break;
             }
-            let trial = match model.predict(&raw(&qp.ubar), &mut trial_y) {
-                Ok(()) => objective(&s, &trial_y, &qp.ubar),
-                Err(_) => f64::INFINITY,
-            };
+            // the trial carries its Jacobian: most trials are accepted, and
+            // an accepted one needs it next (the model's prediction is the
+            // same with or without)
+            let trial =
+                match model.predict_with_jacobian(&raw(&qp.ubar), &mut trial_y, &mut trial_jac) {
+                    Ok(()) => objective(&s, &trial_y, &qp.ubar),
+                    Err(_) => f64::INFINITY,
+                };
             let rho = (j - trial) / predicted;
             if rho > 0.1 {
                 // a run that creeps (each accepted step gains less than the
@@ -454,23 +518,9 @@ impl ZoneMpc {
                     0
                 };
                 ubar = qp.ubar;
-                if model
-                    .predict_with_jacobian(&raw(&ubar), &mut y, &mut jac)
-                    .is_err()
-                {
-                    // the model just predicted this plan, so only the budget
-                    // running out in the evaluation gets here: keep the plan
-                    // with that prediction
-                    y.copy_from_slice(&trial_y);
-                    j = trial;
-                    status = if self.out_of_time() {
-                        SolveStatus::TimeBudget
-                    } else {
-                        SolveStatus::Fallback("model failed at an accepted plan".into())
-                    };
-                    break;
-                }
-                j = objective(&s, &y, &ubar);
+                std::mem::swap(&mut y, &mut trial_y);
+                std::mem::swap(&mut jac, &mut trial_jac);
+                j = trial;
                 if stalled >= STALL_STEPS {
                     status = SolveStatus::Converged;
                     break;
@@ -655,5 +705,93 @@ impl ZoneMpc {
         }
         let ubar: Vec<f64> = sol.x[..n].iter().map(|v| v.clamp(0.0, 1.0)).collect();
         Ok(Qp { ubar })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// What the solve ran before candidates were skipped: every level
+    /// evaluated, sorted stably by j0, the best `runs`, up to the first at or
+    /// above the cutoff.
+    fn exhaustive(
+        warm: &[f64],
+        runs: usize,
+        cutoff: f64,
+        objective_of: &mut dyn FnMut(&[f64]) -> Option<f64>,
+    ) -> Vec<(f64, Vec<f64>)> {
+        let mut all: Vec<(f64, Vec<f64>)> = START_LEVELS
+            .iter()
+            .map(|&l| vec![l; warm.len()])
+            .filter(|p| p != warm)
+            .filter_map(|p| objective_of(&p).map(|j| (j, p)))
+            .collect();
+        all.sort_by(|a, b| a.0.total_cmp(&b.0));
+        all.into_iter()
+            .take(runs)
+            .take_while(|c| c.0 < cutoff)
+            .collect()
+    }
+
+    #[test]
+    fn skipping_constant_plans_by_their_input_cost_runs_the_same_starts() {
+        let s = MpcSettings::default();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(14);
+        let mut skipped = 0;
+        for case in 0..2000 {
+            let n = s.horizon;
+            // the zone part of each plan's objective: often 0, sometimes
+            // large, so that every level can rank anywhere; some fail
+            let zone_part: Vec<Option<f64>> = START_LEVELS
+                .iter()
+                .map(|_| match rng.random_range(0..10) {
+                    0 => None,
+                    1..=3 => Some(0.0),
+                    _ => Some(10f64.powf(rng.random_range(-4.0..4.0))),
+                })
+                .collect();
+            let objective_of = |plan: &[f64]| {
+                let k = START_LEVELS.iter().position(|&l| l == plan[0]).unwrap();
+                zone_part[k].map(|z| z + input_cost(&s, plan))
+            };
+            let warm = if case % 3 == 0 {
+                vec![START_LEVELS[rng.random_range(0..START_LEVELS.len())]; n]
+            } else {
+                vec![0.3; n]
+            };
+            let runs = rng.random_range(0..5);
+            let cutoff = match rng.random_range(0..3) {
+                0 => f64::INFINITY,
+                _ => 10f64.powf(rng.random_range(-4.0..4.0)),
+            };
+            let mut evaluated = 0;
+            let got = start_candidates(&s, &warm, runs, cutoff, |p| {
+                evaluated += 1;
+                objective_of(p)
+            });
+            let want = exhaustive(&warm, runs, cutoff, &mut |p| objective_of(p));
+            let run: Vec<_> = got.into_iter().take_while(|c| c.0 < cutoff).collect();
+            assert_eq!(run, want, "case {case}: runs {runs}, cutoff {cutoff}");
+            skipped += START_LEVELS.len() - evaluated;
+        }
+        // the bound does skip work: the highest levels cost R·N·ū² = 500 and
+        // 2000, above most cutoffs and most zone parts
+        assert!(skipped > 2000, "only {skipped} evaluations skipped");
+    }
+
+    #[test]
+    fn the_input_cost_bounds_the_objective_from_below() {
+        let s = MpcSettings::default();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..1000 {
+            let ubar: Vec<f64> = (0..s.horizon).map(|_| rng.random::<f64>()).collect();
+            let y: Vec<f64> = (0..s.horizon).map(|_| rng.random_range(0.1..0.4)).collect();
+            assert!(input_cost(&s, &ubar) <= objective(&s, &y, &ubar));
+            // inside the zone the two are the same number
+            let inside = vec![0.2; s.horizon];
+            assert_eq!(input_cost(&s, &ubar), objective(&s, &inside, &ubar));
+        }
     }
 }

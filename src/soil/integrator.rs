@@ -303,6 +303,9 @@ pub struct Integrator {
 #[derive(Debug, Clone)]
 struct Workspace {
     eval: Evaluation,
+    /// The robust path's evaluation in the heads at a stage's solution,
+    /// for the tangents.
+    tangent_eval: Evaluation,
     /// Stored water at the start of the step, and the heads it is of.
     storage: Vec<f64>,
     storage_heads: Vec<f64>,
@@ -355,6 +358,7 @@ impl Workspace {
         let z = vec![0.0; n];
         Workspace {
             eval: Evaluation::new(n),
+            tangent_eval: Evaluation::new(n),
             storage: z.clone(),
             storage_heads: vec![f64::NAN; n],
             stage_rates: std::array::from_fn(|_| z.clone()),
@@ -708,30 +712,37 @@ impl Integrator {
                     w.trial[i] = soil.pressure_head_from_storage(target);
                 }
             }
-            if path == Path::Robust && self.work.keep_jacobians {
-                // the tangents need ∂F/∂H in the heads (Newton's may be in ψ)
-                let w = &mut self.work;
-                let rates = w.eval.storage.clone();
-                let amounts = w.eval.amounts;
-                self.column
-                    .evaluate(&w.trial, forcing, &mut w.eval, Derivatives::Included);
-                w.eval.storage.copy_from_slice(&rates);
-                w.eval.amounts = amounts;
-            }
             let w = &mut self.work;
+            if path == Path::Robust && w.keep_jacobians {
+                // the tangents need ∂F/∂H in the heads (Newton's may be in
+                // ψ), at the projected heads; evaluated aside, so that the
+                // step (its error estimate) is the same without tangents
+                self.column.evaluate(
+                    &w.trial,
+                    forcing,
+                    &mut w.tangent_eval,
+                    Derivatives::Included,
+                );
+            }
             w.stage_rates[stage].copy_from_slice(&w.eval.storage);
             w.stage_amount_rates[stage] = w.eval.amounts;
             if w.keep_jacobians {
-                w.stage_lower[stage].copy_from_slice(&w.eval.lower);
-                w.stage_diagonal[stage].copy_from_slice(&w.eval.diagonal);
-                w.stage_upper[stage].copy_from_slice(&w.eval.upper);
+                let e = if path == Path::Robust {
+                    &w.tangent_eval
+                } else {
+                    &w.eval
+                };
+                w.stage_lower[stage].copy_from_slice(&e.lower);
+                w.stage_diagonal[stage].copy_from_slice(&e.diagonal);
+                w.stage_upper[stage].copy_from_slice(&e.upper);
                 for i in 0..n {
-                    w.stage_capacity[stage][i] = w.eval.states[i].capacity + ss;
+                    w.stage_capacity[stage][i] = e.states[i].capacity + ss;
                 }
                 // the top face passes the whole supply unless it is capped
-                // (then its derivative is in ∂F/∂H, and the supply runs off)
+                // (then its derivative is in ∂F/∂H, and the supply runs off);
+                // the runoff is the stage's own
                 w.stage_supply_gain[stage] =
-                    if w.eval.top_gradient == 0.0 && w.eval.amounts[super::column::RUNOFF] == 0.0 {
+                    if e.top_gradient == 0.0 && w.eval.amounts[super::column::RUNOFF] == 0.0 {
                         1.0 / self.column.cell_thickness()
                     } else {
                         0.0

@@ -1,0 +1,165 @@
+//! The Richards-model zone MPC on every texture (issue 14, part 6): for
+//! each of the 12 textures under its default zone (MODEL.md §4) and each
+//! weather file, 60 steps from h = −0.2 m, no noise and a perfect forecast,
+//! the controller given the plant's state (the oracle). Prints per case the
+//! irrigation, the largest distance outside the zone after θ first entered
+//! it (split into the dry and the wet side), the solve times and how many
+//! model evaluations the solves made.
+//!
+//! `cargo run --release --example zmpc_textures [TEXTURE…]`
+
+use std::time::Instant;
+
+use rootzone::control::{ModelError, SolveStatus};
+use rootzone::control::{MpcSettings, PredictionModel, RichardsModel, ZoneMpc, ZoneSettings};
+use rootzone::soil::{Field, FieldSettings, Interrupt, Texture};
+use rootzone::weather::{DRY_SCENARIO, RAIN_SCENARIO, WeatherSeries};
+
+/// A Richards model that counts its evaluations.
+struct Counted {
+    inner: RichardsModel,
+    predictions: usize,
+    jacobians: usize,
+    prediction_time: f64,
+    jacobian_time: f64,
+}
+
+impl PredictionModel for Counted {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        self.predictions += 1;
+        let t = Instant::now();
+        let r = self.inner.predict(plan, out);
+        self.prediction_time += t.elapsed().as_secs_f64() * 1e3;
+        r
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        self.jacobians += 1;
+        let t = Instant::now();
+        let r = self.inner.predict_with_jacobian(plan, out, jac);
+        self.jacobian_time += t.elapsed().as_secs_f64() * 1e3;
+        r
+    }
+
+    fn set_interrupt(&mut self, interrupt: Option<Interrupt>) {
+        self.inner.set_interrupt(interrupt);
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn main() {
+    let only: Vec<String> = std::env::args().skip(1).collect();
+    let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").expect("embedded weather");
+    let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").expect("embedded weather");
+    println!(
+        "| texture | weather | I_T mm | dry after entry | wet after entry | median ms | p95 ms | \
+         max ms | predictions/solve | ms each | Jacobians/solve | ms each | iterations/solve | \
+         not converged |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for texture in Texture::ALL {
+        if !only.is_empty() && !only.contains(&texture.to_string()) {
+            continue;
+        }
+        let soil = texture.parameters();
+        for (name, weather) in [("dry", &dry), ("rain", &rain)] {
+            let mut field = Field::new(FieldSettings {
+                soil,
+                ..FieldSettings::default()
+            })
+            .expect("a texture is a valid soil");
+            let zone = ZoneSettings::default_for(&soil);
+            let settings = MpcSettings {
+                zone,
+                theta_r: soil.residual_water_content,
+                theta_s: soil.saturated_water_content,
+                ..MpcSettings::default()
+            };
+            let (low, up) = zone.bounds(0, settings.horizon);
+            let mut mpc = ZoneMpc::new(settings);
+            let (mut irrigation, mut times) = (0.0, Vec::new());
+            let (mut predictions, mut jacobians, mut iterations, mut unconverged) = (0, 0, 0, 0);
+            let (mut prediction_ms, mut jacobian_ms) = (0.0, 0.0);
+            let (mut entered, mut dry_excess, mut wet_excess) = (false, 0.0f64, 0.0f64);
+            let mut stopped = false;
+            for step in 0..60 {
+                let forecast = weather.forecast(step, settings.horizon, 0.0, &mut rand_free());
+                let mut model = Counted {
+                    inner: RichardsModel::new(&field, &forecast),
+                    predictions: 0,
+                    jacobians: 0,
+                    prediction_time: 0.0,
+                    jacobian_time: 0.0,
+                };
+                let started = Instant::now();
+                let solution = mpc.solve(&mut model);
+                times.push(started.elapsed().as_secs_f64() * 1e3);
+                predictions += model.predictions;
+                jacobians += model.jacobians;
+                prediction_ms += model.prediction_time;
+                jacobian_ms += model.jacobian_time;
+                iterations += solution.iterations;
+                if solution.status != SolveStatus::Converged {
+                    unconverged += 1;
+                }
+                let u = solution.plan[0].clamp(0.0, settings.u_max);
+                irrigation += u * field.settings().sampling_time * 1e3;
+                let truth = weather.steps()[step.min(weather.len() - 1)];
+                let report = match field.step(truth.forcing(u, field.settings().sampling_time)) {
+                    Ok(report) => report,
+                    Err(e) => {
+                        println!("| {texture} | {name} | plant stopped: {e} |");
+                        stopped = true;
+                        break;
+                    }
+                };
+                let theta = report.water_content;
+                entered |= (low..=up).contains(&theta);
+                if entered {
+                    dry_excess = dry_excess.max(low - theta);
+                    wet_excess = wet_excess.max(theta - up);
+                }
+            }
+            if stopped {
+                continue;
+            }
+            let n = times.len() as f64;
+            let mut sorted = times.clone();
+            sorted.sort_by(f64::total_cmp);
+            println!(
+                "| {texture} | {name} | {irrigation:.2} | {:.1e} | {:.1e} | {:.1} | {:.1} | {:.1} | \
+                 {:.1} | {:.2} | {:.1} | {:.2} | {:.1} | {unconverged} |",
+                dry_excess.max(0.0),
+                wet_excess.max(0.0),
+                median(times.clone()),
+                sorted[((0.95 * n) as usize).min(sorted.len() - 1)],
+                sorted[sorted.len() - 1],
+                predictions as f64 / n,
+                prediction_ms / predictions.max(1) as f64,
+                jacobians as f64 / n,
+                jacobian_ms / jacobians.max(1) as f64,
+                iterations as f64 / n,
+            );
+        }
+    }
+}
+
+/// A perfect forecast draws nothing; the generator is only its argument.
+fn rand_free() -> rand_chacha::ChaCha8Rng {
+    use rand::SeedableRng;
+    rand_chacha::ChaCha8Rng::seed_from_u64(0)
+}
