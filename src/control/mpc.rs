@@ -475,6 +475,7 @@ impl ZoneMpc {
         let mut trial_y = vec![0.0; n];
         let mut trial_jac = vec![0.0; n * n];
         let mut stalled = 0;
+        let mut rejected = false;
         while iterations < s.max_iterations {
             if self.out_of_time() {
                 status = SolveStatus::TimeBudget;
@@ -499,15 +500,23 @@ impl ZoneMpc {
                 status = SolveStatus::Converged;
                 break;
             }
-            // the trial carries its Jacobian: most trials are accepted, and
-            // an accepted one needs it next (the model's prediction is the
-            // same with or without)
-            let trial =
-                match model.predict_with_jacobian(&raw(&qp.ubar), &mut trial_y, &mut trial_jac) {
-                    Ok(()) => objective(&s, &trial_y, &qp.ubar),
-                    Err(_) => f64::INFINITY,
-                };
+            // after an accepted step the trial carries its Jacobian: it is
+            // then usually accepted too, and needs it next (the model's
+            // prediction is the same with or without). After a rejection
+            // (a model far from linear, rejections come in runs) it does
+            // not, and an accepted one gets its Jacobian after.
+            let with_jacobian = !rejected;
+            let evaluated = if with_jacobian {
+                model.predict_with_jacobian(&raw(&qp.ubar), &mut trial_y, &mut trial_jac)
+            } else {
+                model.predict(&raw(&qp.ubar), &mut trial_y)
+            };
+            let trial = match evaluated {
+                Ok(()) => objective(&s, &trial_y, &qp.ubar),
+                Err(_) => f64::INFINITY,
+            };
             let rho = (j - trial) / predicted;
+            rejected = rho <= 0.1;
             if rho > 0.1 {
                 // a run that creeps (each accepted step gains less than the
                 // objective tolerance) has stalled at its optimum: the trust
@@ -518,8 +527,25 @@ impl ZoneMpc {
                     0
                 };
                 ubar = qp.ubar;
-                std::mem::swap(&mut y, &mut trial_y);
-                std::mem::swap(&mut jac, &mut trial_jac);
+                if with_jacobian {
+                    std::mem::swap(&mut y, &mut trial_y);
+                    std::mem::swap(&mut jac, &mut trial_jac);
+                } else if model
+                    .predict_with_jacobian(&raw(&ubar), &mut y, &mut jac)
+                    .is_err()
+                {
+                    // the model just predicted this plan, so only the budget
+                    // running out in the evaluation gets here: keep the plan
+                    // with that prediction
+                    y.copy_from_slice(&trial_y);
+                    j = trial;
+                    status = if self.out_of_time() {
+                        SolveStatus::TimeBudget
+                    } else {
+                        SolveStatus::Fallback("model failed at an accepted plan".into())
+                    };
+                    break;
+                }
                 j = trial;
                 if stalled >= STALL_STEPS {
                     status = SolveStatus::Converged;

@@ -351,6 +351,10 @@ struct Workspace {
     stage_upper: [Vec<f64>; STAGES],
     stage_capacity: [Vec<f64>; STAGES],
     stage_supply_gain: [f64; STAGES],
+    /// Per tangent, T_j·S_j + F_p,j of the stages of the step being carried,
+    /// and one stage's solution.
+    stage_df: Vec<[Vec<f64>; STAGES]>,
+    tangent_stage: Vec<f64>,
 }
 
 impl Workspace {
@@ -387,6 +391,8 @@ impl Workspace {
             stage_upper: std::array::from_fn(|_| z.clone()),
             stage_capacity: std::array::from_fn(|_| z.clone()),
             stage_supply_gain: [0.0; STAGES],
+            stage_df: Vec::new(),
+            tangent_stage: z.clone(),
         }
     }
 }
@@ -533,9 +539,7 @@ impl Integrator {
             }
             match self.try_step(&heads, &forcing, this_dt) {
                 Step::Accepted { error } => {
-                    for (p, tangent) in tangents.iter_mut().enumerate() {
-                        self.propagate_tangent(tangent, this_dt, irrigation == Some(p));
-                    }
+                    self.propagate_tangents(tangents, this_dt, irrigation);
                     let w = &self.work;
                     heads.copy_from_slice(&w.trial);
                     for (k, amount) in amounts.iter_mut().enumerate() {
@@ -781,61 +785,74 @@ impl Integrator {
         }
     }
 
-    /// Carries one tangent over the step just accepted (see
-    /// [`Integrator::advance_with_tangents`]); `irrigation` is whether the
-    /// tangent's parameter is the irrigation rate of this interval.
-    fn propagate_tangent(&mut self, tangent: &mut [f64], dt: f64, irrigation: bool) {
+    /// Carries the tangents over the step just accepted (see
+    /// [`Integrator::advance_with_tangents`]); `irrigation` names the tangent,
+    /// if any, whose parameter is the irrigation rate of this interval. A
+    /// stage's matrix is the same for every tangent: it is factorised once.
+    fn propagate_tangents(
+        &mut self,
+        tangents: &mut [Vec<f64>],
+        dt: f64,
+        irrigation: Option<usize>,
+    ) {
         let n = self.column.cells();
         let w = &mut self.work;
-        // dF_j = T_j·S_j + F_p,j of the stages so far, in `stage_dF`
-        let mut stage_df: [Vec<f64>; STAGES] = std::array::from_fn(|_| vec![0.0; n]);
-        let mut s = vec![0.0; n];
+        // dF_j = T_j·S_j + F_p,j of every tangent's stages so far
+        if w.stage_df.len() < tangents.len() {
+            w.stage_df
+                .resize_with(tangents.len(), || std::array::from_fn(|_| vec![0.0; n]));
+        }
+        let gamma_dt = GAMMA * dt;
         for stage in 0..STAGES {
-            for i in 0..n {
-                let mut rhs = w.start_capacity[i] * tangent[i];
-                for j in 0..stage {
-                    rhs += dt * A[stage][j] * stage_df[j][i];
-                }
-                w.known[i] = rhs;
-            }
-            let gain = if irrigation {
-                w.stage_supply_gain[stage]
-            } else {
-                0.0
-            };
-            w.known[0] += GAMMA * dt * gain;
             let (lower, diagonal, upper, capacity) = (
                 &w.stage_lower[stage],
                 &w.stage_diagonal[stage],
                 &w.stage_upper[stage],
                 &w.stage_capacity[stage],
             );
-            let gamma_dt = GAMMA * dt;
-            let ok = w.solver.solve(
+            // the same matrix Newton just factorised: it cannot be singular,
+            // but should it be, the tangents say so by being NaN
+            let factored = w.solver.factor(
                 |i| -gamma_dt * lower[i],
                 |i| capacity[i] - gamma_dt * diagonal[i],
                 |i| -gamma_dt * upper[i],
-                &w.known,
-                &mut s,
             );
-            if !ok {
-                // the same matrix Newton just factorised: cannot be singular
-                s.fill(f64::NAN);
-            }
-            let df = &mut stage_df[stage];
-            for i in 0..n {
-                let mut v = diagonal[i] * s[i];
-                if i > 0 {
-                    v += lower[i] * s[i - 1];
+            for (p, tangent) in tangents.iter_mut().enumerate() {
+                let df = &mut w.stage_df[p];
+                for i in 0..n {
+                    let mut rhs = w.start_capacity[i] * tangent[i];
+                    for j in 0..stage {
+                        rhs += dt * A[stage][j] * df[j][i];
+                    }
+                    w.known[i] = rhs;
                 }
-                if i + 1 < n {
-                    v += upper[i] * s[i + 1];
+                let gain = if irrigation == Some(p) {
+                    w.stage_supply_gain[stage]
+                } else {
+                    0.0
+                };
+                w.known[0] += gamma_dt * gain;
+                let s = &mut w.tangent_stage;
+                if !(factored && w.solver.solve_factored(&w.known, s)) {
+                    s.fill(f64::NAN);
                 }
-                df[i] = v;
+                let out = &mut df[stage];
+                for i in 0..n {
+                    let mut v = diagonal[i] * s[i];
+                    if i > 0 {
+                        v += lower[i] * s[i - 1];
+                    }
+                    if i + 1 < n {
+                        v += upper[i] * s[i + 1];
+                    }
+                    out[i] = v;
+                }
+                out[0] += gain;
+                if stage + 1 == STAGES {
+                    tangent.copy_from_slice(s);
+                }
             }
-            df[0] += gain;
         }
-        tangent.copy_from_slice(&s);
     }
 
     /// The fast path's stage solve: Newton in the heads with a backtracking
@@ -1525,9 +1542,14 @@ fn solve_thomas(
 /// Thomas algorithm is unstable.
 #[derive(Debug, Clone)]
 struct Tridiagonal {
+    /// U of the factorisation: its diagonal, first and second super-diagonal.
     diagonal: Vec<f64>,
     upper: Vec<f64>,
     second: Vec<f64>,
+    /// Per elimination step i, the multiplier and whether rows i and i+1
+    /// were swapped.
+    multiplier: Vec<f64>,
+    swapped: Vec<bool>,
     rhs: Vec<f64>,
 }
 
@@ -1538,6 +1560,8 @@ impl Tridiagonal {
             diagonal: z.clone(),
             upper: z.clone(),
             second: z.clone(),
+            multiplier: z.clone(),
+            swapped: vec![false; n],
             rhs: z,
         }
     }
@@ -1554,18 +1578,23 @@ impl Tridiagonal {
         rhs: &[f64],
         x: &mut [f64],
     ) -> bool {
-        let n = rhs.len();
-        let (d, du, du2, r) = (
-            &mut self.diagonal,
-            &mut self.upper,
-            &mut self.second,
-            &mut self.rhs,
-        );
+        self.factor(a, b, c) && self.solve_factored(rhs, x)
+    }
+
+    /// Factorises the matrix of [`Tridiagonal::solve`] for
+    /// [`Tridiagonal::solve_factored`]; false if a pivot vanishes.
+    fn factor(
+        &mut self,
+        a: impl Fn(usize) -> f64,
+        b: impl Fn(usize) -> f64,
+        c: impl Fn(usize) -> f64,
+    ) -> bool {
+        let n = self.diagonal.len();
+        let (d, du, du2) = (&mut self.diagonal, &mut self.upper, &mut self.second);
         for i in 0..n {
             d[i] = b(i);
             du[i] = if i + 1 < n { c(i) } else { 0.0 };
             du2[i] = 0.0;
-            r[i] = rhs[i];
         }
         for i in 0..n.saturating_sub(1) {
             let below = a(i + 1);
@@ -1575,7 +1604,8 @@ impl Tridiagonal {
                 }
                 let f = below / d[i];
                 d[i + 1] -= f * du[i];
-                r[i + 1] -= f * r[i];
+                self.multiplier[i] = f;
+                self.swapped[i] = false;
             } else {
                 // swap rows i and i+1
                 let f = d[i] / below;
@@ -1587,14 +1617,30 @@ impl Tridiagonal {
                     du[i + 1] = -f * du2[i];
                 }
                 du[i] = t;
+                self.multiplier[i] = f;
+                self.swapped[i] = true;
+            }
+        }
+        d[n - 1] != 0.0
+    }
+
+    /// Solves with the last factorisation (which must have succeeded) for
+    /// the right-hand side `rhs`; false if the solution is not finite.
+    fn solve_factored(&mut self, rhs: &[f64], x: &mut [f64]) -> bool {
+        let n = rhs.len();
+        let r = &mut self.rhs;
+        r.copy_from_slice(rhs);
+        for i in 0..n.saturating_sub(1) {
+            let f = self.multiplier[i];
+            if self.swapped[i] {
                 let t = r[i];
                 r[i] = r[i + 1];
                 r[i + 1] = t - f * r[i + 1];
+            } else {
+                r[i + 1] -= f * r[i];
             }
         }
-        if d[n - 1] == 0.0 {
-            return false;
-        }
+        let (d, du, du2) = (&self.diagonal, &self.upper, &self.second);
         for i in (0..n).rev() {
             let mut v = r[i];
             if i + 1 < n {
