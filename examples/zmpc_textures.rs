@@ -4,7 +4,10 @@
 //! the controller given the plant's state (the oracle). Prints per case the
 //! irrigation, the largest distance outside the zone after θ first entered
 //! it (split into the dry and the wet side), the solve times and how many
-//! model evaluations the solves made.
+//! model evaluations the solves made. Beside it, the wet-side distance
+//! after entry of the same plant never irrigated: no irrigation gives the
+//! driest column there is (water only adds), so where that distance exceeds
+//! a bound, no controller that enters the zone keeps within it.
 //!
 //! `cargo run --release --example zmpc_textures [TEXTURE…]`
 
@@ -68,9 +71,9 @@ fn main() {
     println!(
         "| texture | weather | I_T mm | dry after entry | wet after entry | median ms | p95 ms | \
          max ms | predictions/solve | ms each | Jacobians/solve | ms each | iterations/solve | \
-         not converged |"
+         not converged | fallbacks | wet after entry, never irrigated |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for texture in Texture::ALL {
         if !only.is_empty() && !only.contains(&texture.to_string()) {
             continue;
@@ -96,6 +99,7 @@ fn main() {
             let (mut prediction_ms, mut jacobian_ms) = (0.0, 0.0);
             let (mut entered, mut dry_excess, mut wet_excess) = (false, 0.0f64, 0.0f64);
             let mut stopped = false;
+            let mut fallbacks = 0;
             for step in 0..60 {
                 let forecast = weather.forecast(step, settings.horizon, 0.0, &mut rand_free());
                 let mut model = Counted {
@@ -115,6 +119,9 @@ fn main() {
                 iterations += solution.iterations;
                 if solution.status != SolveStatus::Converged {
                     unconverged += 1;
+                }
+                if matches!(solution.status, SolveStatus::Fallback(_)) {
+                    fallbacks += 1;
                 }
                 let u = solution.plan[0].clamp(0.0, settings.u_max);
                 irrigation += u * field.settings().sampling_time * 1e3;
@@ -142,7 +149,7 @@ fn main() {
             sorted.sort_by(f64::total_cmp);
             println!(
                 "| {texture} | {name} | {irrigation:.2} | {:.1e} | {:.1e} | {:.1} | {:.1} | {:.1} | \
-                 {:.1} | {:.2} | {:.1} | {:.2} | {:.1} | {unconverged} |",
+                 {:.1} | {:.2} | {:.1} | {:.2} | {:.1} | {unconverged} | {fallbacks} | {:.1e} |",
                 dry_excess.max(0.0),
                 wet_excess.max(0.0),
                 median(times.clone()),
@@ -153,9 +160,38 @@ fn main() {
                 jacobians as f64 / n,
                 jacobian_ms / jacobians.max(1) as f64,
                 iterations as f64 / n,
+                unirrigated_wet_excess(soil, weather, low, up),
             );
         }
     }
+}
+
+/// The largest θ − up after θ first enters [low, up] in 60 steps of the
+/// plant never irrigated (0 if it never enters or never leaves upward).
+fn unirrigated_wet_excess(
+    soil: rootzone::soil::VanGenuchten,
+    weather: &WeatherSeries,
+    low: f64,
+    up: f64,
+) -> f64 {
+    let mut field = Field::new(FieldSettings {
+        soil,
+        ..FieldSettings::default()
+    })
+    .expect("a texture is a valid soil");
+    let (mut entered, mut excess) = (false, 0.0f64);
+    for step in 0..60 {
+        let truth = weather.steps()[step.min(weather.len() - 1)];
+        let Ok(report) = field.step(truth.forcing(0.0, field.settings().sampling_time)) else {
+            return f64::NAN;
+        };
+        let theta = report.water_content;
+        entered |= (low..=up).contains(&theta);
+        if entered {
+            excess = excess.max(theta - up);
+        }
+    }
+    excess
 }
 
 /// A perfect forecast draws nothing; the generator is only its argument.

@@ -2,6 +2,7 @@
 
 use crate::soil::{
     Column, ColumnState, Crop, Field, Forcing, Integrator, Interrupt, Tolerances, VanGenuchten,
+    WorkLimits,
 };
 use crate::surrogate::evaluate::WINDOW;
 use crate::surrogate::{Past, Predictor};
@@ -194,10 +195,23 @@ impl PredictionModel for SurrogateModel {
     }
 }
 
+/// The work limits of a [`RichardsModel`]'s integrations per sampling step
+/// (the simulator's defaults before every case of `tests/textures.rs`
+/// finished; a prediction's cost at them is 0.2–0.6 s).
+pub const MODEL_LIMITS: WorkLimits = WorkLimits {
+    step_attempts: 2_000,
+    newton_iterations: 40_000,
+};
+
 /// The Richards model of MODEL.md §1 as a prediction model: the column's
 /// integrator from the full state (heads) under the weather forecast. Its
 /// Jacobian comes from tangents carried through the integrator's implicit
 /// stages ([`Integrator::advance_with_tangents`]), not finite differences.
+///
+/// Its integrations give up on a sampling step after [`MODEL_LIMITS`], well
+/// below the simulator's defaults: a plan that needs more (a fine soil
+/// wetted to just below saturation, `soil::WorkLimits`) fails as a trial in
+/// about 0.4 s instead of spending the solve's whole time budget.
 #[derive(Debug, Clone)]
 pub struct RichardsModel {
     integrator: Integrator,
@@ -214,7 +228,11 @@ impl RichardsModel {
     pub fn new(field: &Field, forecast: &[WeatherStep]) -> RichardsModel {
         let sampling_time = field.settings().sampling_time;
         RichardsModel {
-            integrator: field.integrator().clone(),
+            integrator: {
+                let mut integrator = field.integrator().clone();
+                integrator.set_limits(MODEL_LIMITS);
+                integrator
+            },
             state: field.state().clone(),
             forecast: forecast
                 .iter()
@@ -236,7 +254,8 @@ impl RichardsModel {
         sampling_time: f64,
     ) -> Result<RichardsModel, ModelError> {
         let column = Column::new(soil, crop, depth, heads.len()).map_err(ModelError)?;
-        let integrator = Integrator::new(column, Tolerances::default()).map_err(ModelError)?;
+        let mut integrator = Integrator::new(column, Tolerances::default()).map_err(ModelError)?;
+        integrator.set_limits(MODEL_LIMITS);
         if heads.iter().any(|h| !h.is_finite()) {
             return Err(ModelError("the Richards model needs finite heads".into()));
         }
