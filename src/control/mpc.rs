@@ -413,7 +413,7 @@ impl ZoneMpc {
                 .is_ok()
                 .then(|| objective(&s, &y, plan))
         });
-        for (j0, other) in candidates.into_iter().take(runs) {
+        for (j0, other) in candidates {
             if self.out_of_time() {
                 break;
             }
