@@ -342,7 +342,7 @@ fn garbage_is_detected_as_divergence_and_a_reset_recovers() {
         e.update(&[(0, 0.25)]),
         Err(EstimateError::Diverged(_))
     ));
-    e.reset_to_prior();
+    e.reset_to_prior(&[]);
     e.predict(forcing(1), DT).unwrap();
     e.update(&[(0, 0.25)]).unwrap();
     // an impossible but finite reading: innovation far beyond the bound
@@ -353,6 +353,26 @@ fn garbage_is_detected_as_divergence_and_a_reset_recovers() {
     // a collapsed ensemble (every member equal) with a zero-noise sensor
     // cannot be: noise is refused at construction
     assert_eq!(e.statistics().resets, 1);
+}
+
+#[test]
+fn a_reset_starts_the_members_at_rest_at_the_readings_it_is_given() {
+    // started at 0.26; the field has since dried to 0.15
+    let mut e = small_estimator(6);
+    e.reset_to_prior(&[(0, 0.15)]);
+    let at = e.sensor_theta(0).unwrap();
+    assert!((at - 0.15).abs() < 0.01, "sensor θ after the reset {at}");
+    let profile = e.profile();
+    assert!(
+        profile.iter().all(|p| (p.theta_mean - 0.15).abs() < 0.01),
+        "the column at rest: {profile:?}"
+    );
+    // a reading that is not a water content is passed over; with none the
+    // members start where the filter started
+    e.reset_to_prior(&[(0, f64::NAN), (7, 0.1)]);
+    let at = e.sensor_theta(0).unwrap();
+    assert!((at - 0.26).abs() < 0.01, "sensor θ after the reset {at}");
+    assert_eq!(e.statistics().resets, 2);
 }
 
 #[test]

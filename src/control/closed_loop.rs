@@ -316,6 +316,8 @@ pub struct ObservedRun {
     pub parameters: Vec<crate::estimate::ParameterEstimate>,
     pub resets: usize,
     pub replaced_members: u64,
+    /// The texture the "unknown" prior's selection kept, if it ran.
+    pub selected_texture: Option<crate::soil::Texture>,
 }
 
 /// Steps after which the estimation errors are scored (the first day).
@@ -484,13 +486,14 @@ pub fn run_observed_loop(
             status: solution.status,
         });
     }
-    let (parameters, resets, replaced_members) = match &controller {
+    let (parameters, resets, replaced_members, selected_texture) = match &controller {
         LoopController::Estimated(e) => (
             e.estimator().parameters(),
             e.resets(),
             e.estimator().statistics().replaced_members,
+            e.estimator().selected_texture(),
         ),
-        _ => (Vec::new(), 0, 0),
+        _ => (Vec::new(), 0, 0, None),
     };
     Ok(ObservedRun {
         run: ClosedLoopRun {
@@ -504,5 +507,6 @@ pub fn run_observed_loop(
         parameters,
         resets,
         replaced_members,
+        selected_texture,
     })
 }

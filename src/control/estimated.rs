@@ -15,11 +15,16 @@ use crate::weather::WeatherStep;
 use super::controller::Decision;
 use super::model::RichardsModel;
 use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
+use super::policy;
+use super::zone::ZoneSettings;
 
 /// The estimated-Richards controller.
 #[derive(Debug, Clone)]
 pub struct EstimatedRichards {
     mpc: ZoneMpc,
+    /// The zone asked for; the solve aims at it backed off by the
+    /// estimate's uncertainty ([`policy::backed_off`]).
+    zone: ZoneSettings,
     estimator: Estimator,
     crop: Crop,
     sampling_time: f64,
@@ -38,6 +43,7 @@ impl EstimatedRichards {
         sampling_time: f64,
     ) -> EstimatedRichards {
         EstimatedRichards {
+            zone: settings.zone,
             mpc: ZoneMpc::new(settings),
             estimator,
             crop,
@@ -76,6 +82,8 @@ impl EstimatedRichards {
         self.mpc.settings.theta_r = soil.residual_water_content;
         self.mpc.settings.theta_s = soil.saturated_water_content;
         let depth = self.estimator.settings().depth;
+        let sd = self.estimator.output_sd();
+        self.mpc.settings.zone = policy::backed_off(self.zone, sd);
         let solution = match RichardsModel::from_state(
             soil,
             self.crop,
@@ -111,9 +119,8 @@ impl EstimatedRichards {
 
     /// Records the last step: the forcing it ran under (applied irrigation,
     /// observed ET0 and rain) and the readings (sensor index, θ) at its end.
-    /// A diverged estimator is reset to its prior (and the readings
-    /// assimilated into the fresh one); the error is returned for the
-    /// caller to record.
+    /// A diverged estimator is reset to its prior, its members at rest at
+    /// the readings; the error is returned for the caller to record.
     pub fn observe(
         &mut self,
         forcing: Forcing,
@@ -127,8 +134,8 @@ impl EstimatedRichards {
         let result = match outcome {
             Err(EstimateError::Diverged(why)) => {
                 self.resets += 1;
-                self.estimator.reset_to_prior();
-                let _ = self.estimator.update(readings);
+                // the fresh members start at rest at these readings
+                self.estimator.reset_to_prior(readings);
                 self.last_error = Some(why.clone());
                 Err(EstimateError::Diverged(why))
             }

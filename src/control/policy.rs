@@ -7,6 +7,42 @@
 use std::time::Duration;
 
 use super::mpc::{MpcSettings, Solution, SolveStatus};
+use super::zone::ZoneSettings;
+
+/// How many standard deviations of the estimated θ at the model's output
+/// cell the lower zone bound is raised by for a controller that plans on a
+/// state estimate ([`backed_off`]).
+pub const BACK_OFF_SDS: f64 = 0.5;
+
+/// The largest back-off, as a share of the terminal zone's width: the zone
+/// keeps at least half of its width.
+pub const BACK_OFF_SHARE: f64 = 0.5;
+
+/// The zone a controller planning on a *state estimate* aims at: the lower
+/// bound raised by [`BACK_OFF_SDS`] × `sd`, the standard deviation of the
+/// estimated θ at the model's output cell, at most [`BACK_OFF_SHARE`] of the
+/// terminal zone's width (a constraint back-off, as in stochastic MPC: a
+/// plan that just touches the lower bound of the estimate dries the true
+/// root zone about half of the time). The upper bound is kept: the wet side
+/// only wastes water, the dry side harms the crop (MODEL.md §4). A `sd`
+/// that is not finite or not positive leaves the zone as it is.
+pub fn backed_off(zone: ZoneSettings, sd: f64) -> ZoneSettings {
+    backed_off_by(zone, sd, BACK_OFF_SDS)
+}
+
+/// [`backed_off`] with a given number of standard deviations.
+pub fn backed_off_by(zone: ZoneSettings, sd: f64, sds: f64) -> ZoneSettings {
+    if !(sd.is_finite() && sd > 0.0 && sds.is_finite() && sds > 0.0) {
+        return zone;
+    }
+    let width = (zone.y_up - zone.y_low).max(0.0);
+    let lift = (sds * sd).min(BACK_OFF_SHARE * width);
+    ZoneSettings {
+        low0: zone.low0 + lift,
+        y_low: zone.y_low + lift,
+        ..zone
+    }
+}
 
 /// The rate applied from a plan's first move: clamped to [0, u_max], and 0
 /// when it is not finite (a failed solve never irrigates by accident).
@@ -73,6 +109,33 @@ pub fn no_irrigation(settings: &MpcSettings, reason: impl Into<String>) -> Solut
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_back_off_raises_the_lower_bound_by_the_sd_within_half_the_width() {
+        let zone = ZoneSettings::band(0.18, 0.23);
+        let z = backed_off_by(zone, 0.004, 1.0);
+        assert!((z.y_low - 0.184).abs() < 1e-15 && (z.low0 - 0.184).abs() < 1e-15);
+        assert_eq!((z.y_up, z.up0, z.mu), (0.23, 0.23, 0.0));
+        // capped at half the width
+        let z = backed_off_by(zone, 0.1, 1.0);
+        assert!((z.y_low - 0.205).abs() < 1e-15);
+        assert!(z.problem().is_none());
+        // a shrinking zone keeps its order
+        let shrinking = ZoneSettings {
+            low0: 0.18,
+            up0: 0.23,
+            y_low: 0.20,
+            y_up: 0.21,
+            mu: 1.0,
+        };
+        let z = backed_off_by(shrinking, 0.003, 1.0);
+        assert!((z.low0 - 0.183).abs() < 1e-15 && (z.y_low - 0.203).abs() < 1e-15);
+        assert!(z.problem().is_none());
+        // nothing to back off by
+        for sd in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(backed_off(zone, sd), zone);
+        }
+    }
 
     #[test]
     fn the_applied_rate_is_clamped_and_never_irrigates_on_a_bad_plan() {

@@ -11,13 +11,15 @@
 //!   enters as MODEL.md §2's process noise: every head is multiplied by
 //!   `1 + σ_p·N(0, 1)` after each step (σ_p = 0.02/√3, the standard deviation
 //!   of the plant's 2 % uniform noise, scaled by √(duration / 2 h)).
-//! * Analysis: [`analysis::analysis`], the serial square-root filter
+//! * Analysis: in the members' water contents θ(h) by default
+//!   ([`AnalysisVariable`]; heads are recovered with each member's updated
+//!   soil), [`analysis::analysis`], the serial square-root filter
 //!   (Whitaker & Hamill 2002) by default, or the perturbed-observation EnKF
 //!   (Evensen 2003; Burgers et al. 1998); observation operator θ(h) of the
 //!   member's own soil in the sensor's cell. Before each analysis the
 //!   deviations from the mean are inflated by a constant factor
 //!   (multiplicative inflation, Anderson & Anderson 1999, Mon. Wea. Rev. 127,
-//!   2741–2758), heads and parameters with their own factors: the parameters
+//!   2741–2758), the cells and the parameters with their own factors: the parameters
 //!   have no dynamics of their own, and without inflation their spread would
 //!   only shrink. After the analysis every member's parameters are clamped to
 //!   the physical bounds of [`prior::BOUNDS`] and its heads to
@@ -25,7 +27,8 @@
 //! * Divergence: non-finite members, an innovation covariance that is not
 //!   positive definite, or a normalised innovation |d|/√(HPHᵀ + R) above
 //!   [`EstimatorSettings::max_normalised_innovation`] are
-//!   [`EstimateError::Diverged`]; [`Estimator::reset_to_prior`] starts over.
+//!   [`EstimateError::Diverged`]; [`Estimator::reset_to_prior`] starts over
+//!   at the readings that came.
 //!
 //! # Why an EnKF, and these settings (measured)
 //!
@@ -119,6 +122,30 @@ pub struct EstimatorSettings {
     pub selection_updates: usize,
     /// For the "unknown" prior: members per texture while selecting.
     pub members_per_texture: usize,
+    /// The variable the analysis moves the cells in (estimates stored before
+    /// this setting existed analysed heads).
+    #[serde(default = "AnalysisVariable::stored_default")]
+    pub analysis_variable: AnalysisVariable,
+}
+
+/// The variable in which the analysis updates the cells of a member.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AnalysisVariable {
+    /// The pressure head itself.
+    Head,
+    /// The water content θ(h) of the member's own soil: the sensors'
+    /// observation operator is then linear, and a reading on the flat dry
+    /// end of θ(h) cannot move a member's head by metres (a head update
+    /// there, on a sand, threw members to saturation). Heads are recovered
+    /// with the member's updated soil, θ kept within (θr, θs].
+    WaterContent,
+}
+
+impl AnalysisVariable {
+    fn stored_default() -> Self {
+        AnalysisVariable::Head
+    }
 }
 
 impl Default for EstimatorSettings {
@@ -139,7 +166,8 @@ impl Default for EstimatorSettings {
             step_attempts: 500,
             newton_iterations: 10_000,
             selection_updates: 12,
-            members_per_texture: 4,
+            members_per_texture: 8,
+            analysis_variable: AnalysisVariable::WaterContent,
         }
     }
 }
@@ -399,13 +427,7 @@ impl Estimator {
                     if !theta.is_finite() {
                         return Err(format!("initial reading must be finite, got {theta}"));
                     }
-                    let lo = soil.residual_water_content + 1e-3;
-                    let hi = soil.saturated_water_content - 1e-3;
-                    let h = soil
-                        .pressure_head_at(theta.clamp(lo, hi))
-                        .max(HEAD_BOUNDS.0);
-                    let factor = (0.2 * normal(&mut rng)).exp();
-                    vec![(h * factor).clamp(HEAD_BOUNDS.0, -1e-3); n]
+                    heads_at_reading(&soil, *theta, n, &mut rng)
                 }
             };
             for i in 0..n {
@@ -577,6 +599,54 @@ impl Estimator {
                 innovations: Vec::new(),
             });
         }
+        let theta_space = self.settings.analysis_variable == AnalysisVariable::WaterContent;
+        if theta_space {
+            self.heads_to_water_contents();
+        }
+        let outcome = self.analyse(readings, theta_space);
+        if theta_space {
+            self.water_contents_to_heads();
+        }
+        let (variances, predicted_mean) = outcome?;
+        let innovations: Vec<Innovation> = readings
+            .iter()
+            .enumerate()
+            .map(|(l, &(k, theta))| {
+                let d = theta - predicted_mean[l];
+                Innovation {
+                    sensor: self.sensors[k].id.clone(),
+                    observed: theta,
+                    predicted: predicted_mean[l],
+                    innovation: d,
+                    normalised: d / variances[l].sqrt(),
+                }
+            })
+            .collect();
+        self.clamp_members();
+        self.check_finite()?;
+        self.statistics.updates += 1;
+        let report = UpdateReport { innovations };
+        self.last_update = Some(report.clone());
+        if let Some(bad) = report.innovations.iter().find(|i| {
+            i.normalised.is_nan() || i.normalised.abs() > self.settings.max_normalised_innovation
+        }) {
+            return Err(EstimateError::Diverged(format!(
+                "sensor '{}': normalised innovation {:.1} beyond {}",
+                bad.sensor, bad.normalised, self.settings.max_normalised_innovation
+            )));
+        }
+        Ok(report)
+    }
+
+    /// Inflation and the analysis of `readings` (checked), on the ensemble
+    /// whose cell rows hold heads, or water contents when `theta_space`.
+    /// Returns the innovation variances and the forecast's mean predicted
+    /// readings.
+    fn analyse(
+        &mut self,
+        readings: &[(usize, f64)],
+        theta_space: bool,
+    ) -> Result<(Vec<f64>, Vec<f64>), EstimateError> {
         let n = self.cells();
         let members = self.ensemble.ncols();
         // inflate, around each texture group's own mean while selecting
@@ -605,7 +675,12 @@ impl Estimator {
                 }
             }
         }
-        self.clamp_members();
+        if theta_space {
+            self.clamp_parameters();
+            self.clamp_water_contents();
+        } else {
+            self.clamp_members();
+        }
         let m = readings.len();
         let cells: Vec<usize> = readings
             .iter()
@@ -615,7 +690,12 @@ impl Estimator {
         for j in 0..members {
             let soil = self.member_soil(j);
             for (l, &c) in cells.iter().enumerate() {
-                predicted[(l, j)] = soil.water_content(self.ensemble[(c, j)]);
+                let v = self.ensemble[(c, j)];
+                predicted[(l, j)] = if theta_space {
+                    v
+                } else {
+                    soil.water_content(v)
+                };
             }
         }
         let y: Vec<f64> = readings.iter().map(|r| r.1).collect();
@@ -694,34 +774,7 @@ impl Estimator {
                 overall
             }
         };
-        let innovations: Vec<Innovation> = readings
-            .iter()
-            .enumerate()
-            .map(|(l, &(k, theta))| {
-                let d = theta - predicted_mean[l];
-                Innovation {
-                    sensor: self.sensors[k].id.clone(),
-                    observed: theta,
-                    predicted: predicted_mean[l],
-                    innovation: d,
-                    normalised: d / variances[l].sqrt(),
-                }
-            })
-            .collect();
-        self.clamp_members();
-        self.check_finite()?;
-        self.statistics.updates += 1;
-        let report = UpdateReport { innovations };
-        self.last_update = Some(report.clone());
-        if let Some(bad) = report.innovations.iter().find(|i| {
-            i.normalised.is_nan() || i.normalised.abs() > self.settings.max_normalised_innovation
-        }) {
-            return Err(EstimateError::Diverged(format!(
-                "sensor '{}': normalised innovation {:.1} beyond {}",
-                bad.sensor, bad.normalised, self.settings.max_normalised_innovation
-            )));
-        }
-        Ok(report)
+        Ok((variances, predicted_mean.iter().copied().collect()))
     }
 
     /// Assimilates readings named by sensor id.
@@ -780,6 +833,79 @@ impl Estimator {
         self.selection.is_some()
     }
 
+    /// The smallest effective saturation a member's cell is given when its
+    /// water content comes back from the analysis.
+    const SE_FLOOR: f64 = 1e-9;
+
+    /// Replaces every member's cell heads with their water contents θ(h) in
+    /// the member's own soil.
+    fn heads_to_water_contents(&mut self) {
+        let n = self.cells();
+        for j in 0..self.ensemble.ncols() {
+            let soil = self.member_soil(j);
+            for i in 0..n {
+                self.ensemble[(i, j)] = soil.water_content(self.ensemble[(i, j)]);
+            }
+        }
+    }
+
+    /// Keeps every member's cell water contents within its soil's range
+    /// [θr + ε, θs] (rows hold water contents).
+    fn clamp_water_contents(&mut self) {
+        let n = self.cells();
+        for j in 0..self.ensemble.ncols() {
+            let soil = self.member_soil(j);
+            let (lo, hi) = Self::water_content_range(&soil);
+            for i in 0..n {
+                let v = self.ensemble[(i, j)];
+                if v.is_finite() {
+                    self.ensemble[(i, j)] = v.clamp(lo, hi);
+                }
+            }
+        }
+    }
+
+    fn water_content_range(soil: &VanGenuchten) -> (f64, f64) {
+        let range = soil.saturated_water_content - soil.residual_water_content;
+        (
+            soil.residual_water_content + Self::SE_FLOOR * range,
+            soil.saturated_water_content,
+        )
+    }
+
+    /// The inverse of [`Self::heads_to_water_contents`], with the members'
+    /// (updated) soils; parameters are clamped to their bounds first, water
+    /// contents to the soil's range, heads to [`HEAD_BOUNDS`]. A non-finite
+    /// value stays non-finite (for [`Self::check_finite`]).
+    fn water_contents_to_heads(&mut self) {
+        self.clamp_parameters();
+        let n = self.cells();
+        for j in 0..self.ensemble.ncols() {
+            let soil = self.member_soil(j);
+            let (lo, hi) = Self::water_content_range(&soil);
+            for i in 0..n {
+                let v = self.ensemble[(i, j)];
+                self.ensemble[(i, j)] = if v.is_finite() {
+                    soil.pressure_head_at(v.clamp(lo, hi))
+                        .clamp(HEAD_BOUNDS.0, HEAD_BOUNDS.1)
+                } else {
+                    v
+                };
+            }
+        }
+    }
+
+    fn clamp_parameters(&mut self) {
+        let n = self.cells();
+        for j in 0..self.ensemble.ncols() {
+            let mut p: Vec<f64> = (0..PARAMETERS).map(|q| self.ensemble[(n + q, j)]).collect();
+            prior::clamp(&mut p);
+            for q in 0..PARAMETERS {
+                self.ensemble[(n + q, j)] = p[q];
+            }
+        }
+    }
+
     fn clamp_members(&mut self) {
         let n = self.cells();
         for j in 0..self.ensemble.ncols() {
@@ -797,17 +923,30 @@ impl Estimator {
         }
     }
 
-    /// Starts over from the prior and the initial heads, keeping the time,
-    /// the sensors and the generator's position.
-    pub fn reset_to_prior(&mut self) {
+    /// Starts over from the prior, keeping the time, the sensors and the
+    /// generator's position. The members' heads are those of
+    /// [`InitialGuess::Reading`] at the first of `readings` (sensor index,
+    /// θ) that is a valid reading, taken now: the column at rest at the
+    /// water content the field shows now, in each member's soil; with none,
+    /// the heads the filter started from (a reset long after the start
+    /// would otherwise begin from a water content the field left days ago).
+    pub fn reset_to_prior(&mut self, readings: &[(usize, f64)]) {
+        let reading = readings
+            .iter()
+            .find(|&&(k, theta)| k < self.sensors.len() && (0.0..=1.0).contains(&theta))
+            .map(|&(_, theta)| theta);
         let n = self.cells();
         let size = self.initial_heads.len();
         let (_, selecting) = initial_members(&self.prior, &self.settings);
         self.ensemble = DMatrix::zeros(n + PARAMETERS, size);
         for j in 0..size {
             let p = self.prior.sample(j, &mut self.rng);
+            let heads = match reading {
+                Some(theta) => heads_at_reading(&prior::to_soil(&p), theta, n, &mut self.rng),
+                None => self.initial_heads[j].clone(),
+            };
             for i in 0..n {
-                self.ensemble[(i, j)] = self.initial_heads[j][i];
+                self.ensemble[(i, j)] = heads[i];
             }
             for q in 0..PARAMETERS {
                 self.ensemble[(n + q, j)] = p[q];
@@ -897,6 +1036,16 @@ impl Estimator {
                 }
             })
             .collect()
+    }
+
+    /// The standard deviation of the estimated θ in the cell a Richards
+    /// model reads its output from (the rooting depth, MODEL.md §1).
+    pub fn output_sd(&self) -> f64 {
+        let column = Column::new(self.soil(), self.crop, self.settings.depth, self.cells());
+        match column {
+            Ok(c) => self.profile()[c.sensor_cell()].theta_sd,
+            Err(_) => f64::NAN,
+        }
     }
 
     /// The estimated θ at a sensor (ensemble mean).
@@ -1049,6 +1198,18 @@ fn initial_members(prior: &Prior, settings: &EstimatorSettings) -> (usize, bool)
 }
 
 /// The cell holding depth `d` in a column of `depth` m and `n` cells.
+/// A member's heads for [`InitialGuess::Reading`]: the uniform head that
+/// gives θ = `theta` in `soil`, spread by a factor `exp(0.2·N(0, 1))`.
+fn heads_at_reading(soil: &VanGenuchten, theta: f64, n: usize, rng: &mut impl Rng) -> Vec<f64> {
+    let lo = soil.residual_water_content + 1e-3;
+    let hi = soil.saturated_water_content - 1e-3;
+    let h = soil
+        .pressure_head_at(theta.clamp(lo, hi))
+        .max(HEAD_BOUNDS.0);
+    let factor = (0.2 * normal(rng)).exp();
+    vec![(h * factor).clamp(HEAD_BOUNDS.0, -1e-3); n]
+}
+
 pub fn cell_of(d: f64, depth: f64, n: usize) -> usize {
     ((d / (depth / n as f64)) as usize).min(n - 1)
 }

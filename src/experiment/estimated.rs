@@ -320,6 +320,7 @@ pub fn summary(case: &Case, run: &ObservedRun) -> Value {
         "parameters": parameters,
         "estimator_resets": run.resets,
         "replaced_members": run.replaced_members,
+        "selected_texture": run.selected_texture.map(|t| t.name()),
         "fallbacks": r.fallbacks(),
     })
 }
@@ -513,7 +514,8 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
          MODEL.md §6: 60 steps, 2 % process and 2 % measurement noise, 20 % forecast error, \
          one sensor at 0.125 m, each plant's default zone, means over seeds 3, 5, 7. \
          The oracle is the Richards ZMPC given the plant's true soil and state; \"texture prior\" \
-         and \"unknown\" are the Richards ZMPC on the ensemble filter's estimate (16 members), \
+         and \"unknown\" are the Richards ZMPC on the ensemble filter's estimate (16 members, \
+         analysis in θ, the zone's lower bound backed off by half the estimate's sd), \
          started from the plant's texture prior (sandy loam for the perturbed sandy loams) or \
          from the 12-texture mixture. Targets: ΔI_T within 5 % (texture prior) / 10 % (unknown) \
          of the oracle's, dry-side violation at most 1e-4 / 2e-4 above the oracle's; sensor-θ \

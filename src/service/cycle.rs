@@ -52,6 +52,9 @@ pub struct EstimateView {
     pub heads: Vec<f64>,
     pub soil: VanGenuchten,
     pub depth: f64,
+    /// Standard deviation of the estimated θ in the model's output cell
+    /// (the zone's back-off, [`policy::backed_off`]).
+    pub output_sd: f64,
 }
 
 impl CycleInputs {
@@ -134,13 +137,15 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     let period_d = TimeDelta::milliseconds((period * 1000.0) as i64);
     // the Richards model plans on the estimated soil; the surrogates know
     // the soil they were trained on
-    let settings = spec.mpc_settings_with(
-        inputs
-            .estimate
-            .as_ref()
-            .filter(|_| spec.model == ModelKind::Richards)
-            .map(|e| &e.soil),
-    );
+    let richards_estimate = inputs
+        .estimate
+        .as_ref()
+        .filter(|_| spec.model == ModelKind::Richards);
+    let mut settings = spec.mpc_settings_with(richards_estimate.map(|e| &e.soil));
+    // planning on an estimate: the lower bound backed off by its uncertainty
+    if let Some(e) = richards_estimate {
+        settings.zone = policy::backed_off(settings.zone, e.output_sd);
+    }
     let n = settings.horizon;
     let mut degraded = inputs.degraded.clone();
     let (weather, defaulted) = horizon_weather(inputs.forecast.as_ref(), period, now, n);
@@ -489,7 +494,7 @@ pub fn assimilate(
         }
         if let Err(e) = outcome {
             flags_detail.push(format!("{t}: {e}"));
-            est.reset_to_prior();
+            est.reset_to_prior(&values);
             resets += 1;
             if !flags.iter().any(|f| f == "estimator-reset") {
                 flags.push("estimator-reset".into());
@@ -1053,6 +1058,7 @@ mod tests {
             heads: vec![soil.pressure_head_at(theta); 26],
             soil,
             depth: 0.5,
+            output_sd: 0.0,
         }
     }
 

@@ -581,6 +581,7 @@ impl Engine {
                 heads: est.mean_heads(),
                 soil: est.soil(),
                 depth: est.settings().depth,
+                output_sd: est.output_sd(),
             }),
             done.flags,
             Some(body),
@@ -729,6 +730,7 @@ impl Engine {
             heads: est.mean_heads(),
             soil: est.soil(),
             depth: est.settings().depth,
+            output_sd: est.output_sd(),
         })
     }
 
