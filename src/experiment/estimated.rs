@@ -204,11 +204,18 @@ pub fn run_case(case: &Case) -> Result<ObservedRun, String> {
         told_et0: None,
     };
     let dt = field.sampling_time;
+    // the shipped networks run where the field is believed to be sandy
+    // loam: the plant is (a yardstick), or the prior says so (a field the
+    // networks do not know exactly, E8)
+    let sandy_loam =
+        case.plant == VanGenuchten::SANDY_LOAM || case.prior == Prior::Texture(Texture::SandyLoam);
     let surrogate = |text: &str, name: &str| -> Result<ModelFile, String> {
-        if case.plant != VanGenuchten::SANDY_LOAM {
+        if !sandy_loam {
             return Err(format!(
                 "the {name} controller exists only for sandy loam (the shipped models in models/ \
-                 were trained on it); the plant is another soil"
+                 were trained on it); the plant is another soil and the prior is {} \
+                 (--prior sandy-loam runs it on a field believed to be sandy loam)",
+                case.prior.describe()
             ));
         }
         ModelFile::from_json(text, Path::new(&format!("(built-in) models/{name}.json")))
@@ -423,11 +430,16 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
     for (plant, soil, prior) in e8_plants() {
         for (wname, weather) in &weathers {
             for seed in E8_SEEDS {
-                for (controller, label, p) in [
+                let mut controllers = vec![
                     (ControllerChoice::Oracle, "oracle", prior),
                     (ControllerChoice::Richards, "texture prior", prior),
                     (ControllerChoice::Richards, "unknown", Prior::Unknown),
-                ] {
+                ];
+                // the shipped network where the field is believed sandy loam
+                if prior == Prior::Texture(Texture::SandyLoam) {
+                    controllers.push((ControllerChoice::TwoLayer, "two-layer", prior));
+                }
+                for (controller, label, p) in controllers {
                     cases.push((
                         plant.clone(),
                         *wname,
@@ -519,7 +531,9 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
          started from the plant's texture prior (sandy loam for the perturbed sandy loams) or \
          from the 12-texture mixture. Targets: ΔI_T within 5 % (texture prior) / 10 % (unknown) \
          of the oracle's, dry-side violation at most 1e-4 / 2e-4 above the oracle's; sensor-θ \
-         RMS ≤ 0.005 and profile RMS ≤ 0.01 after the first day.\n\n\
+         RMS ≤ 0.005 and profile RMS ≤ 0.01 after the first day. \"two-layer\" is the shipped \
+         network (trained on sandy loam) on the plants believed to be sandy loam, with the \
+         surrogates' bias correction: reported, without a target.\n\n\
          | plant | weather | controller | I_T [mm] | ΔI_T [%] | dry viol. | Δ dry | wet viol. after entry | sensor RMSE | profile RMSE | est. ms mean | targets |\n\
          |---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|\n",
     );
@@ -563,7 +577,13 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
                 ("oracle", f64::NAN, f64::NAN),
                 ("texture prior", 5.0, 1e-4),
                 ("unknown", 10.0, 2e-4),
+                ("two-layer", f64::NAN, f64::NAN),
             ] {
+                if rows.iter().all(|r| {
+                    !(r.plant == plant && r.weather == *wname && r.controller == controller)
+                }) {
+                    continue;
+                }
                 let (i_t, failures) = mean_of(controller, &it);
                 let (d, _) = mean_of(controller, &dry);
                 let (w, _) = mean_of(controller, &wet);
@@ -581,7 +601,7 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
                     (Some(a), Some(b)) => Some(a - b),
                     _ => None,
                 };
-                let verdict = if controller == "oracle" {
+                let verdict = if it_tol.is_nan() {
                     if failures > 0 {
                         format!("{failures} failed")
                     } else {
@@ -674,10 +694,11 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
         }
     }
     // figure: profile RMSE over time, one line per controller kind, first plant, dry, seed 3
-    for r in rows
-        .iter()
-        .filter(|r| r.weather == "dry" && r.seed == E8_SEEDS[0] && r.controller != "oracle")
-    {
+    for r in rows.iter().filter(|r| {
+        r.weather == "dry"
+            && r.seed == E8_SEEDS[0]
+            && matches!(r.controller, "texture prior" | "unknown")
+    }) {
         if let Ok((run, _)) = &r.outcome
             && (r.plant == "sandy loam" || r.plant.starts_with("sandy loam, Ks × 0.5"))
         {

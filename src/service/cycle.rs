@@ -1063,6 +1063,32 @@ mod tests {
     }
 
     #[test]
+    fn a_richards_field_planning_on_its_estimate_backs_the_lower_bound_off() {
+        let m = models();
+        for (model, sd, low) in [
+            (ModelKind::Richards, 0.0, 0.18),
+            (ModelKind::Richards, 0.004, 0.182),
+            // at most half the zone's width
+            (ModelKind::Richards, 1.0, 0.205),
+            // the surrogates do not plan on the estimate
+            (ModelKind::TwoLayer, 0.004, 0.18),
+        ] {
+            let mut i = inputs(model);
+            i.measurements = vec![reading("2026-06-02T11:55:00Z", 0.2)];
+            i.estimate = Some(EstimateView {
+                output_sd: sd,
+                ..view_at(0.2)
+            });
+            let sp = decide(&i, &m, &cancel());
+            assert_eq!(sp.zone.len(), 20);
+            for z in &sp.zone {
+                assert!((z[0] - low).abs() < 1e-12, "{model:?} sd {sd}: {z:?}");
+                assert_eq!(z[1], 0.23, "{model:?} sd {sd}");
+            }
+        }
+    }
+
+    #[test]
     fn a_synthesised_history_dries_down_to_the_first_measured_theta() {
         let period = 7200.0;
         let t0 = at("2026-06-01T00:00:00Z");
