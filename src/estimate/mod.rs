@@ -837,32 +837,31 @@ impl Estimator {
     /// water content comes back from the analysis.
     const SE_FLOOR: f64 = 1e-9;
 
-    /// Replaces every member's cell heads with their water contents θ(h) in
-    /// the member's own soil.
-    fn heads_to_water_contents(&mut self) {
+    /// Replaces every cell value v of every member with `f(soil, v)`, the
+    /// member's own soil given.
+    fn map_cells(&mut self, f: impl Fn(&VanGenuchten, f64) -> f64) {
         let n = self.cells();
         for j in 0..self.ensemble.ncols() {
             let soil = self.member_soil(j);
             for i in 0..n {
-                self.ensemble[(i, j)] = soil.water_content(self.ensemble[(i, j)]);
+                self.ensemble[(i, j)] = f(&soil, self.ensemble[(i, j)]);
             }
         }
     }
 
+    /// Replaces every member's cell heads with their water contents θ(h) in
+    /// the member's own soil.
+    fn heads_to_water_contents(&mut self) {
+        self.map_cells(|soil, h| soil.water_content(h));
+    }
+
     /// Keeps every member's cell water contents within its soil's range
-    /// [θr + ε, θs] (rows hold water contents).
+    /// [θr + ε, θs] (rows hold water contents; non-finite values stay).
     fn clamp_water_contents(&mut self) {
-        let n = self.cells();
-        for j in 0..self.ensemble.ncols() {
-            let soil = self.member_soil(j);
-            let (lo, hi) = Self::water_content_range(&soil);
-            for i in 0..n {
-                let v = self.ensemble[(i, j)];
-                if v.is_finite() {
-                    self.ensemble[(i, j)] = v.clamp(lo, hi);
-                }
-            }
-        }
+        self.map_cells(|soil, v| {
+            let (lo, hi) = Self::water_content_range(soil);
+            if v.is_finite() { v.clamp(lo, hi) } else { v }
+        });
     }
 
     fn water_content_range(soil: &VanGenuchten) -> (f64, f64) {
@@ -879,20 +878,15 @@ impl Estimator {
     /// value stays non-finite (for [`Self::check_finite`]).
     fn water_contents_to_heads(&mut self) {
         self.clamp_parameters();
-        let n = self.cells();
-        for j in 0..self.ensemble.ncols() {
-            let soil = self.member_soil(j);
-            let (lo, hi) = Self::water_content_range(&soil);
-            for i in 0..n {
-                let v = self.ensemble[(i, j)];
-                self.ensemble[(i, j)] = if v.is_finite() {
-                    soil.pressure_head_at(v.clamp(lo, hi))
-                        .clamp(HEAD_BOUNDS.0, HEAD_BOUNDS.1)
-                } else {
-                    v
-                };
+        self.map_cells(|soil, v| {
+            let (lo, hi) = Self::water_content_range(soil);
+            if v.is_finite() {
+                soil.pressure_head_at(v.clamp(lo, hi))
+                    .clamp(HEAD_BOUNDS.0, HEAD_BOUNDS.1)
+            } else {
+                v
             }
-        }
+        });
     }
 
     fn clamp_parameters(&mut self) {
@@ -906,6 +900,9 @@ impl Estimator {
         }
     }
 
+    /// Keeps every member's heads within [`HEAD_BOUNDS`] and its parameters
+    /// within their bounds (non-finite values stay, for
+    /// [`Self::check_finite`]).
     fn clamp_members(&mut self) {
         let n = self.cells();
         for j in 0..self.ensemble.ncols() {
@@ -915,12 +912,8 @@ impl Estimator {
                     self.ensemble[(i, j)] = h.clamp(HEAD_BOUNDS.0, HEAD_BOUNDS.1);
                 }
             }
-            let mut p: Vec<f64> = (0..PARAMETERS).map(|q| self.ensemble[(n + q, j)]).collect();
-            prior::clamp(&mut p);
-            for q in 0..PARAMETERS {
-                self.ensemble[(n + q, j)] = p[q];
-            }
         }
+        self.clamp_parameters();
     }
 
     /// Starts over from the prior, keeping the time, the sensors and the
