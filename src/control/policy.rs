@@ -27,16 +27,11 @@ pub const BACK_OFF_SHARE: f64 = 0.5;
 /// only wastes water, the dry side harms the crop (MODEL.md §4). A `sd`
 /// that is not finite or not positive leaves the zone as it is.
 pub fn backed_off(zone: ZoneSettings, sd: f64) -> ZoneSettings {
-    backed_off_by(zone, sd, BACK_OFF_SDS)
-}
-
-/// [`backed_off`] with a given number of standard deviations.
-pub fn backed_off_by(zone: ZoneSettings, sd: f64, sds: f64) -> ZoneSettings {
-    if !(sd.is_finite() && sd > 0.0 && sds.is_finite() && sds > 0.0) {
+    if !(sd.is_finite() && sd > 0.0) {
         return zone;
     }
     let width = (zone.y_up - zone.y_low).max(0.0);
-    let lift = (sds * sd).min(BACK_OFF_SHARE * width);
+    let lift = (BACK_OFF_SDS * sd).min(BACK_OFF_SHARE * width);
     ZoneSettings {
         low0: zone.low0 + lift,
         y_low: zone.y_low + lift,
@@ -113,11 +108,11 @@ mod tests {
     #[test]
     fn the_back_off_raises_the_lower_bound_by_the_sd_within_half_the_width() {
         let zone = ZoneSettings::band(0.18, 0.23);
-        let z = backed_off_by(zone, 0.004, 1.0);
+        let z = backed_off(zone, 0.004 / BACK_OFF_SDS);
         assert!((z.y_low - 0.184).abs() < 1e-15 && (z.low0 - 0.184).abs() < 1e-15);
         assert_eq!((z.y_up, z.up0, z.mu), (0.23, 0.23, 0.0));
         // capped at half the width
-        let z = backed_off_by(zone, 0.1, 1.0);
+        let z = backed_off(zone, 0.1 / BACK_OFF_SDS);
         assert!((z.y_low - 0.205).abs() < 1e-15);
         assert!(z.problem().is_none());
         // a shrinking zone keeps its order
@@ -128,7 +123,7 @@ mod tests {
             y_up: 0.21,
             mu: 1.0,
         };
-        let z = backed_off_by(shrinking, 0.003, 1.0);
+        let z = backed_off(shrinking, 0.003 / BACK_OFF_SDS);
         assert!((z.low0 - 0.183).abs() < 1e-15 && (z.y_low - 0.203).abs() < 1e-15);
         assert!(z.problem().is_none());
         // nothing to back off by

@@ -1034,11 +1034,8 @@ impl Estimator {
     /// The standard deviation of the estimated θ in the cell a Richards
     /// model reads its output from (the rooting depth, MODEL.md §1).
     pub fn output_sd(&self) -> f64 {
-        let column = Column::new(self.soil(), self.crop, self.settings.depth, self.cells());
-        match column {
-            Ok(c) => self.profile()[c.sensor_cell()].theta_sd,
-            Err(_) => f64::NAN,
-        }
+        let n = self.cells();
+        self.profile()[cell_of(self.crop.rooting_depth, self.settings.depth, n)].theta_sd
     }
 
     /// The estimated θ at a sensor (ensemble mean).
@@ -1190,7 +1187,6 @@ fn initial_members(prior: &Prior, settings: &EstimatorSettings) -> (usize, bool)
     }
 }
 
-/// The cell holding depth `d` in a column of `depth` m and `n` cells.
 /// A member's heads for [`InitialGuess::Reading`]: the uniform head that
 /// gives θ = `theta` in `soil`, spread by a factor `exp(0.2·N(0, 1))`.
 fn heads_at_reading(soil: &VanGenuchten, theta: f64, n: usize, rng: &mut impl Rng) -> Vec<f64> {
@@ -1203,6 +1199,7 @@ fn heads_at_reading(soil: &VanGenuchten, theta: f64, n: usize, rng: &mut impl Rn
     vec![(h * factor).clamp(HEAD_BOUNDS.0, -1e-3); n]
 }
 
+/// The cell holding depth `d` in a column of `depth` m and `n` cells.
 pub fn cell_of(d: f64, depth: f64, n: usize) -> usize {
     ((d / (depth / n as f64)) as usize).min(n - 1)
 }
