@@ -142,33 +142,32 @@ impl Controller {
         };
         let rain: Vec<f64> = (0..n).map(|k| rate(k, |w| w.precip_mm)).collect();
         let et0: Vec<f64> = (0..n).map(|k| rate(k, |w| w.et0_mm)).collect();
-        let solution = match (&mut self.model, field) {
-            (Model::Surrogate { model, .. }, _) => {
-                model.rain = rain;
-                model.et0 = et0;
-                self.mpc.solve(model.as_mut() as &mut dyn PredictionModel)
-            }
-            (Model::Richards, Some(field)) => {
-                let mut model = RichardsModel::new(field, forecast);
-                self.mpc.solve(&mut model)
-            }
-            (Model::Richards, None) => super::policy::no_irrigation(
-                &self.mpc.settings,
-                "the Richards model needs the field state",
-            ),
-        };
-        let mut setpoint = super::policy::applied_rate(&solution.plan, self.mpc.settings.u_max);
-        // the first measurement and each one observed since are the samples
-        if matches!(self.model, Model::Surrogate { .. })
-            && super::policy::start_up_hold(
-                self.observed + 1,
-                crate::surrogate::evaluate::WINDOW,
-                self.last_measured,
-                self.mpc.settings.zone.bounds(1, n).1,
-            )
-        {
-            setpoint = 0.0;
-        }
+        let mut richards;
+        let (model, start_up): (Result<&mut dyn PredictionModel, String>, _) =
+            match (&mut self.model, field) {
+                (Model::Surrogate { model, .. }, _) => {
+                    model.rain = rain;
+                    model.et0 = et0;
+                    // the first measurement and each one observed since
+                    // are the samples
+                    let start_up = super::policy::StartUp {
+                        measured_samples: self.observed + 1,
+                        window: crate::surrogate::evaluate::WINDOW,
+                        measured: self.last_measured,
+                    };
+                    (Ok(model.as_mut()), Some(start_up))
+                }
+                (Model::Richards, Some(field)) => {
+                    richards = RichardsModel::new(field, forecast);
+                    (Ok(&mut richards), None)
+                }
+                (Model::Richards, None) => (
+                    Err("the Richards model needs the field state".to_string()),
+                    None,
+                ),
+            };
+        let step = super::policy::step(&mut self.mpc, model, start_up);
+        let (setpoint, solution) = (step.rate, step.solution);
         Decision { setpoint, solution }
     }
 }

@@ -13,8 +13,9 @@ use crate::soil::{Crop, Forcing};
 use crate::weather::WeatherStep;
 
 use super::controller::Decision;
+use super::model::PredictionModel;
 use super::model::RichardsModel;
-use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
+use super::mpc::{MpcSettings, ZoneMpc};
 use super::policy;
 use super::zone::ZoneSettings;
 
@@ -84,36 +85,21 @@ impl EstimatedRichards {
         let depth = self.estimator.settings().depth;
         let sd = self.estimator.output_sd();
         self.mpc.settings.zone = policy::backed_off(self.zone, sd);
-        let solution = match RichardsModel::from_state(
+        let mut model = RichardsModel::from_state(
             soil,
             self.crop,
             depth,
             self.estimator.mean_heads(),
             forecast,
             self.sampling_time,
-        ) {
-            Ok(mut model) => self.mpc.solve(&mut model),
-            Err(e) => {
-                let n = self.mpc.settings.horizon;
-                Solution {
-                    plan: vec![0.0; n],
-                    predicted: Vec::new(),
-                    zone: (1..=n)
-                        .map(|k| self.mpc.settings.zone.bounds(k, n))
-                        .collect(),
-                    status: SolveStatus::Fallback(e.to_string()),
-                    iterations: 0,
-                    objective: f64::NAN,
-                    solve_time: Duration::ZERO,
-                }
-            }
+        )
+        .map_err(|e| e.to_string());
+        let model = match &mut model {
+            Ok(m) => Ok(m as &mut dyn PredictionModel),
+            Err(e) => Err(e.clone()),
         };
-        let first = solution.plan.first().copied().unwrap_or(0.0);
-        let setpoint = if first.is_finite() {
-            first.clamp(0.0, self.mpc.settings.u_max)
-        } else {
-            0.0
-        };
+        let step = policy::step(&mut self.mpc, model, None);
+        let (setpoint, solution) = (step.rate, step.solution);
         Decision { setpoint, solution }
     }
 

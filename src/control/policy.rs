@@ -6,7 +6,8 @@
 
 use std::time::Duration;
 
-use super::mpc::{MpcSettings, Solution, SolveStatus};
+use super::model::PredictionModel;
+use super::mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc};
 use super::zone::ZoneSettings;
 
 /// How many standard deviations of the estimated θ at the model's output
@@ -86,6 +87,70 @@ pub fn start_up_hold(
     measured_samples < window && measured.is_some_and(|theta| theta > zone_up)
 }
 
+/// What a surrogate's sound start needs to know ([`start_up_hold`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StartUp {
+    /// Samples measured so far, this step's included.
+    pub measured_samples: usize,
+    /// Samples a full window holds.
+    pub window: usize,
+    /// The θ measured now, if a fresh measurement exists.
+    pub measured: Option<f64>,
+}
+
+/// One control step's decision.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Step {
+    /// The rate applied over the next step [m/s], in [0, u_max].
+    pub rate: f64,
+    /// The plan as published: every move clamped, the first one the rate.
+    pub plan: Vec<f64>,
+    pub solution: Solution,
+    /// Whether the sound start held the field (rate 0 whatever the plan).
+    pub held: bool,
+}
+
+/// One control step, the same for every controller (the in-process
+/// [`super::Controller`] and [`super::EstimatedRichards`], and the
+/// daemon's `service::cycle::decide`): the zone MPC solved on `model`, or
+/// the no-irrigation fallback with the reason when there is no model; the
+/// applied rate and the published plan clamped to [0, u_max] (0 for a move
+/// that is not finite); and for a surrogate (`start_up` given) the sound
+/// start's hold.
+pub fn step(
+    mpc: &mut ZoneMpc,
+    model: Result<&mut dyn PredictionModel, String>,
+    start_up: Option<StartUp>,
+) -> Step {
+    let solution = match model {
+        Ok(model) => mpc.solve(model),
+        Err(reason) => no_irrigation(&mpc.settings, reason),
+    };
+    let settings = &mpc.settings;
+    let mut rate = applied_rate(&solution.plan, settings.u_max);
+    let mut plan = published_plan(&solution.plan, settings.u_max);
+    let held = start_up.is_some_and(|s| {
+        start_up_hold(
+            s.measured_samples,
+            s.window,
+            s.measured,
+            settings.zone.bounds(1, settings.horizon).1,
+        )
+    });
+    if held {
+        rate = 0.0;
+        if let Some(first) = plan.first_mut() {
+            *first = 0.0;
+        }
+    }
+    Step {
+        rate,
+        plan,
+        solution,
+        held,
+    }
+}
+
 /// The fallback when there is nothing to solve with: no irrigation over the
 /// horizon, the zone in force, and the reason.
 pub fn no_irrigation(settings: &MpcSettings, reason: impl Into<String>) -> Solution {
@@ -104,6 +169,113 @@ pub fn no_irrigation(settings: &MpcSettings, reason: impl Into<String>) -> Solut
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::control::model::ModelError;
+
+    /// θ_k = θ0 − d·k + g·Σ_{j≤k} u_j (Jacobian exact); fails when `broken`.
+    struct Linear {
+        theta0: f64,
+        d: f64,
+        g: f64,
+        broken: bool,
+    }
+
+    impl PredictionModel for Linear {
+        fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+            if self.broken {
+                return Err(ModelError("broken".into()));
+            }
+            let mut sum = 0.0;
+            for (k, (u, y)) in plan.iter().zip(out.iter_mut()).enumerate() {
+                sum += u;
+                *y = self.theta0 - self.d * (k + 1) as f64 + self.g * sum;
+            }
+            Ok(())
+        }
+
+        fn predict_with_jacobian(
+            &mut self,
+            plan: &[f64],
+            out: &mut [f64],
+            jac: &mut [f64],
+        ) -> Result<(), ModelError> {
+            self.predict(plan, out)?;
+            let n = plan.len();
+            for k in 0..n {
+                for j in 0..n {
+                    jac[k * n + j] = if j <= k { self.g } else { 0.0 };
+                }
+            }
+            Ok(())
+        }
+    }
+
+    fn field(theta0: f64) -> Linear {
+        // 1e-5 m/s over one step raises θ by 0.01; the crop takes 0.002
+        Linear {
+            theta0,
+            d: 0.002,
+            g: 1e3,
+            broken: false,
+        }
+    }
+
+    #[test]
+    fn a_step_irrigates_a_drying_field_within_its_bounds_and_publishes_what_it_applies() {
+        let mut mpc = ZoneMpc::new(MpcSettings::default());
+        let s = step(&mut mpc, Ok(&mut field(0.17)), None);
+        let u_max = mpc.settings.u_max;
+        assert!(s.rate > 0.0 && s.rate <= u_max, "rate {}", s.rate);
+        assert_eq!(s.plan[0], s.rate);
+        assert!(s.plan.iter().all(|u| (0.0..=u_max).contains(u)));
+        assert!(!s.held);
+        // the plan holds the field near its zone's lower bound 0.18 (it
+        // would end at 0.17 − 20·0.002 = 0.13 without water, and no plan
+        // overshoots the top), and its prediction is the model's own
+        let last = *s.solution.predicted.last().unwrap();
+        assert!((0.165..=0.23).contains(&last), "θ_N {last}");
+        let total: f64 = s.solution.plan.iter().sum();
+        assert!((last - (0.17 - 0.04 + 1e3 * total)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_step_without_a_model_or_with_a_failing_one_never_irrigates() {
+        let mut mpc = ZoneMpc::new(MpcSettings::default());
+        let s = step(&mut mpc, Err("no model here".into()), None);
+        assert_eq!((s.rate, s.held), (0.0, false));
+        assert_eq!(s.plan, vec![0.0; mpc.settings.horizon]);
+        assert_eq!(
+            s.solution.status,
+            SolveStatus::Fallback("no model here".into())
+        );
+        let mut broken = field(0.17);
+        broken.broken = true;
+        let s = step(&mut mpc, Ok(&mut broken), None);
+        assert_eq!(s.rate, 0.0);
+        assert!(matches!(s.solution.status, SolveStatus::Fallback(_)));
+    }
+
+    #[test]
+    fn the_sound_start_holds_a_wet_field_only_while_its_window_is_short() {
+        // measured above the zone, but the model (say a padded window)
+        // predicts it dry: the plan irrigates, the hold overrides it
+        let mut mpc = ZoneMpc::new(MpcSettings::default());
+        let short = StartUp {
+            measured_samples: 3,
+            window: 20,
+            measured: Some(0.25),
+        };
+        let s = step(&mut mpc, Ok(&mut field(0.17)), Some(short));
+        assert!(s.held);
+        assert_eq!((s.rate, s.plan[0]), (0.0, 0.0));
+        assert!(s.solution.plan[0] > 0.0);
+        let full = StartUp {
+            measured_samples: 20,
+            ..short
+        };
+        let mut mpc = ZoneMpc::new(MpcSettings::default());
+        let s = step(&mut mpc, Ok(&mut field(0.17)), Some(full));
+        assert!(!s.held && s.rate > 0.0);
+    }
 
     #[test]
     fn the_back_off_raises_the_lower_bound_by_the_sd_within_half_the_width() {

@@ -187,10 +187,11 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     }
     let mut bias = 0.0;
     let mut one_step: Option<SurrogateModel> = None;
-    let mut dry = Vec::new();
     let measured_samples = measured_samples(inputs);
-    let solution = match (current, spec.model) {
-        (None, _) => None,
+    // the cycle's prediction model, if it has one
+    let mut richards: Option<RichardsModel> = None;
+    match (current, spec.model) {
+        (None, _) => {}
         (Some(theta), ModelKind::Richards) => {
             // the controller sees what a real field gives: it starts from
             // the state estimate with the estimated soil, or (no estimate
@@ -220,15 +221,8 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                 }
             };
             match model {
-                Ok(mut model) => {
-                    let sol = mpc.solve(&mut model as &mut dyn PredictionModel);
-                    dry = without_irrigation(&mut model, n, cancel);
-                    Some(sol)
-                }
-                Err(e) => {
-                    tracing::warn!(field = field.id, error = %e, "no Richards model");
-                    None
-                }
+                Ok(model) => richards = Some(model),
+                Err(e) => tracing::warn!(field = field.id, error = %e, "no Richards model"),
             }
         }
         (Some(theta), kind) => {
@@ -260,37 +254,33 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
                 .iter()
                 .map(|w| mm_to_rate(w.et0_mm, period))
                 .collect();
-            let sol = mpc.solve(&mut model);
-            dry = without_irrigation(&mut model, n, cancel);
             one_step = Some(model);
-            Some(sol)
-        }
-    };
-    let solution = solution.unwrap_or_else(|| {
-        policy::no_irrigation(
-            &settings,
-            if current.is_none() {
-                "no measurement yet: no irrigation"
-            } else {
-                "no prediction model: no irrigation"
-            },
-        )
-    });
-    let mut rate = policy::applied_rate(&solution.plan, settings.u_max);
-    let mut plan = policy::published_plan(&solution.plan, settings.u_max);
-    if spec.model != ModelKind::Richards
-        && policy::start_up_hold(
-            measured_samples,
-            WINDOW,
-            fresh.map(|m| m.theta),
-            settings.zone.bounds(1, n).1,
-        )
-    {
-        rate = 0.0;
-        if let Some(first) = plan.first_mut() {
-            *first = 0.0;
         }
     }
+    let model: Result<&mut dyn PredictionModel, String> = match (&mut richards, &mut one_step) {
+        (Some(m), _) => Ok(m),
+        (None, Some(m)) => Ok(m),
+        (None, None) if current.is_none() => Err("no measurement yet: no irrigation".into()),
+        (None, None) => Err("no prediction model: no irrigation".into()),
+    };
+    // the surrogates' sound start; the Richards model starts from a state
+    let start_up = (spec.model != ModelKind::Richards).then(|| policy::StartUp {
+        measured_samples,
+        window: WINDOW,
+        measured: fresh.map(|m| m.theta),
+    });
+    let policy::Step {
+        rate,
+        plan,
+        solution,
+        ..
+    } = policy::step(&mut mpc, model, start_up);
+    // θ with no irrigation at all, for the explanation
+    let dry = match (richards.as_mut(), one_step.as_mut()) {
+        (Some(model), _) => without_irrigation(model, n, cancel),
+        (None, Some(model)) => without_irrigation(model, n, cancel),
+        (None, None) => Vec::new(),
+    };
     let (status, reason) = match &solution.status {
         SolveStatus::Converged => ("converged", None),
         SolveStatus::IterationCap => ("iteration-cap", None),
