@@ -396,107 +396,201 @@ fn zone(y_low: f64, y_up: f64, mu: f64) -> ZoneSettings {
 /// The weather files of E6/E7: label and whether it is the rain scenario.
 const ZONE_WEATHERS: [(&str, bool); 2] = [("dry", false), ("rain", true)];
 
-/// Runs the two-layer controller for each zone on each weather file; writes
-/// figures and traces, returns the runs (weather-major).
+/// Seeds per E6/E7 design: `--seed S` runs S, S + 1, …, S + 19. With 5 %
+/// measurement noise on a zone 0.01 wide, one season's I_T moves by about
+/// ±1.5 mm from seed to seed on weather-rain, more than the shrinking
+/// speeds differ by; the designs are compared on their means (common
+/// random numbers: every design sees the same 20 seeds).
+pub const ZONE_SEEDS: u64 = 20;
+
+/// A mean over the seeds with its standard error.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SeedMean {
+    pub mean: f64,
+    pub standard_error: f64,
+}
+
+impl SeedMean {
+    pub fn of(values: &[f64]) -> SeedMean {
+        let n = values.len() as f64;
+        let mean = values.iter().sum::<f64>() / n.max(1.0);
+        let standard_error = if values.len() > 1 {
+            let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+            (var / n).sqrt()
+        } else {
+            0.0
+        };
+        SeedMean {
+            mean,
+            standard_error,
+        }
+    }
+}
+
+/// One E6/E7 design on one weather file over [`ZONE_SEEDS`] seeds.
+struct ZoneResult {
+    irrigation_mm: SeedMean,
+    dry: SeedMean,
+    wet_after_entry: SeedMean,
+    total: SeedMean,
+    /// Median of the per-season solve medians.
+    solve_median_ms: f64,
+    /// (seed, I_T, dry, wet after entry, total) of every season.
+    seasons: Vec<(u64, f64, f64, f64, f64)>,
+}
+
+/// Runs the two-layer controller for each zone on each weather file and
+/// seed; writes the first seed's figures and traces, returns the results
+/// (weather-major).
 fn zone_runs(
     options: &ExperimentOptions,
     id: &str,
     zones: &[(&str, ZoneSettings)],
     written: &mut Vec<PathBuf>,
-) -> Result<Vec<Vec<ClosedLoopRun>>, ExperimentError> {
+) -> Result<Vec<Vec<ZoneResult>>, ExperimentError> {
     let models = Models::load(options)?;
     let mut all = Vec::new();
     for (weather, rain) in ZONE_WEATHERS {
-        let mut runs = Vec::new();
+        let mut results = Vec::new();
         for (i, (label, z)) in zones.iter().enumerate() {
-            let run = run(
-                ControllerKind::TwoLayer,
-                &models,
-                &Scenario::e6(*z, rain),
-                options.seed,
-            )?;
-            written.push(figure(
-                &options.out.join(format!("{id}-{weather}-zone{i}.svg")),
-                &format!(
-                    "{}: two-layer zone MPC, weather-{weather}, {label}",
-                    id.to_uppercase()
-                ),
-                &run,
-            )?);
-            written.push(trace_csv(
-                &options
-                    .out
-                    .join(format!("{id}-{weather}-zone{i}-trace.csv")),
-                &run,
-            )?);
-            runs.push(run);
+            let mut seasons = Vec::new();
+            let mut medians = Vec::new();
+            for k in 0..ZONE_SEEDS {
+                let seed = options.seed.wrapping_add(k);
+                let run = run(
+                    ControllerKind::TwoLayer,
+                    &models,
+                    &Scenario::e6(*z, rain),
+                    seed,
+                )?;
+                if k == 0 {
+                    written.push(figure(
+                        &options.out.join(format!("{id}-{weather}-zone{i}.svg")),
+                        &format!(
+                            "{}: two-layer zone MPC, weather-{weather}, {label}, seed {seed}",
+                            id.to_uppercase()
+                        ),
+                        &run,
+                    )?);
+                    written.push(trace_csv(
+                        &options
+                            .out
+                            .join(format!("{id}-{weather}-zone{i}-trace.csv")),
+                        &run,
+                    )?);
+                }
+                medians.push(run.solve_times().median_ms);
+                seasons.push((
+                    seed,
+                    run.total_irrigation_mm(),
+                    run.dry_violation(),
+                    run.wet_violation_after_entry(),
+                    run.zone_violation(),
+                ));
+            }
+            medians.sort_by(f64::total_cmp);
+            let column = |f: fn(&(u64, f64, f64, f64, f64)) -> f64| {
+                SeedMean::of(&seasons.iter().map(f).collect::<Vec<_>>())
+            };
+            results.push(ZoneResult {
+                irrigation_mm: column(|s| s.1),
+                dry: column(|s| s.2),
+                wet_after_entry: column(|s| s.3),
+                total: column(|s| s.4),
+                solve_median_ms: medians[medians.len() / 2],
+                seasons,
+            });
         }
-        all.push(runs);
+        all.push(results);
     }
     Ok(all)
 }
 
 /// The table of E6/E7: every zone on every weather file, scored by the
 /// dry-side violation (the headline), the wet-side violation after entry
-/// and the total; Δ relative to the time-invariant zone of the same weather.
+/// and the total, each a mean over the seeds ± its standard error; Δ
+/// relative to the time-invariant zone of the same weather. Also the CSV of
+/// the means and the CSV of every season.
 fn zone_table(
     title: &str,
     zones: &[(&str, ZoneSettings)],
-    runs: &[Vec<ClosedLoopRun>],
+    results: &[Vec<ZoneResult>],
     paper: &[(f64, f64)],
-) -> (String, String) {
+    seed: u64,
+) -> (String, String, String) {
     let mut md = format!(
         "# {title}\n\n\
          MODEL.md §5: the two-layer zone MPC (single bias, f = 2) on the mismatched field of E3 \
          (sandy loam with Ks × 0.7 and α × 1.2; the network knows sandy loam), 5 % measurement \
          noise, 20 % forecast error, 60 steps, each weather file. Scored against [0.18, 0.23] \
          for every design: the dry-side violation (mean of max(0, 0.18 − θ)), the wet-side \
-         violation after θ first enters the zone, and the total. Δ: relative to the \
-         time-invariant zone on the same weather. The paper's figures (its own weather, \
-         total violation) for comparison.\n\n\
+         violation after θ first enters the zone, and the total. Every figure is the mean over \
+         the {ZONE_SEEDS} seeds {seed} … {} (every design sees the same seeds) ± its standard \
+         error; the solve time is the median of the seasons' medians. Δ: relative to the \
+         time-invariant zone on the same weather. The paper's figures (its own weather, one \
+         season, total violation) for comparison.\n\n\
          | weather | target zone | I_T [mm] | ΔI_T [%] | dry-side viol. | Δ dry [%] | wet after entry | total viol. | solve median [ms] | paper I_T [mm] | paper violation |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        seed.wrapping_add(ZONE_SEEDS - 1)
     );
     let mut csv = String::from(
-        "weather,zone,y_low,y_up,mu,irrigation_mm,dry_violation,wet_violation_after_entry,total_violation,solve_median_ms,paper_irrigation_mm,paper_violation\n",
+        "weather,zone,y_low,y_up,mu,seeds,irrigation_mm,irrigation_mm_se,dry_violation,dry_violation_se,wet_violation_after_entry,wet_violation_after_entry_se,total_violation,total_violation_se,solve_median_ms,paper_irrigation_mm,paper_violation\n",
     );
-    for ((weather, _), runs) in ZONE_WEATHERS.iter().zip(runs) {
-        let base = &runs[0];
-        for (i, ((label, z), run)) in zones.iter().zip(runs).enumerate() {
-            let dry_delta = if base.dry_violation() > 0.0 {
-                format!("{:+.1}", percent(run.dry_violation(), base.dry_violation()))
+    let mut seasons = String::from(
+        "weather,zone,mu,seed,irrigation_mm,dry_violation,wet_violation_after_entry,total_violation\n",
+    );
+    for ((weather, _), results) in ZONE_WEATHERS.iter().zip(results) {
+        let base = &results[0];
+        for (i, ((label, z), r)) in zones.iter().zip(results).enumerate() {
+            let dry_delta = if base.dry.mean > 0.0 {
+                format!("{:+.1}", percent(r.dry.mean, base.dry.mean))
             } else {
                 "–".into()
             };
             let _ = writeln!(
                 md,
-                "| {weather} | {label} | {:.2} | {:+.1} | {:.2e} | {dry_delta} | {:.2e} | {:.2e} | {:.1} | {} | {} |",
-                run.total_irrigation_mm(),
-                percent(run.total_irrigation_mm(), base.total_irrigation_mm()),
-                run.dry_violation(),
-                run.wet_violation_after_entry(),
-                run.zone_violation(),
-                run.solve_times().median_ms,
+                "| {weather} | {label} | {:.2} ± {:.2} | {:+.1} | {:.2e} ± {:.1e} | {dry_delta} | {:.2e} ± {:.1e} | {:.2e} ± {:.1e} | {:.1} | {} | {} |",
+                r.irrigation_mm.mean,
+                r.irrigation_mm.standard_error,
+                percent(r.irrigation_mm.mean, base.irrigation_mm.mean),
+                r.dry.mean,
+                r.dry.standard_error,
+                r.wet_after_entry.mean,
+                r.wet_after_entry.standard_error,
+                r.total.mean,
+                r.total.standard_error,
+                r.solve_median_ms,
                 paper[i].0,
                 paper[i].1
             );
             let _ = writeln!(
                 csv,
-                "{weather},\"{label}\",{},{},{},{},{},{},{},{},{},{}",
+                "{weather},\"{label}\",{},{},{},{ZONE_SEEDS},{},{},{},{},{},{},{},{},{},{},{}",
                 z.y_low,
                 z.y_up,
                 z.mu,
-                run.total_irrigation_mm(),
-                run.dry_violation(),
-                run.wet_violation_after_entry(),
-                run.zone_violation(),
-                run.solve_times().median_ms,
+                r.irrigation_mm.mean,
+                r.irrigation_mm.standard_error,
+                r.dry.mean,
+                r.dry.standard_error,
+                r.wet_after_entry.mean,
+                r.wet_after_entry.standard_error,
+                r.total.mean,
+                r.total.standard_error,
+                r.solve_median_ms,
                 paper[i].0,
                 paper[i].1
             );
+            for (seed, it, dry, wet, total) in &r.seasons {
+                let _ = writeln!(
+                    seasons,
+                    "{weather},\"{label}\",{},{seed},{it},{dry},{wet},{total}",
+                    z.mu
+                );
+            }
         }
     }
-    (md, csv)
+    (md, csv, seasons)
 }
 
 /// E6: the time-invariant zone against two shrinking zones (μ = 1), on
@@ -509,15 +603,16 @@ pub fn e6(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
     ];
     let mut written = Vec::new();
     let runs = zone_runs(options, "e6", &zones, &mut written)?;
-    let (mut md, csv) = zone_table(
+    let (mut md, csv, seasons) = zone_table(
         "E6: shrinking terminal zone",
         &zones,
         &runs,
         &[(6.16, 0.007), (9.91, 0.0005), (9.53, 0.001)],
+        options.seed,
     );
     md.push_str("\nTarget: on every weather file where the time-invariant zone's dry-side violation is at least 1e-4, a shrinking zone cuts it by at least 80 %.\n\n");
     for ((weather, _), runs) in ZONE_WEATHERS.iter().zip(&runs) {
-        let base = runs[0].dry_violation();
+        let base = runs[0].dry.mean;
         if base < 1e-4 {
             let _ = writeln!(
                 md,
@@ -526,13 +621,13 @@ pub fn e6(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
             continue;
         }
         for (i, run) in runs.iter().enumerate().skip(1) {
-            let cut = 100.0 * (1.0 - run.dry_violation() / base);
+            let cut = 100.0 * (1.0 - run.dry.mean / base);
             let _ = writeln!(
                 md,
                 "- weather-{weather}, {}: dry-side violation {:.2e} → {:.2e}, {} {:.1} % ({}).",
                 zones[i].0,
                 base,
-                run.dry_violation(),
+                run.dry.mean,
                 if cut >= 0.0 { "a cut of" } else { "a rise of" },
                 cut.abs(),
                 if cut >= 80.0 { "met" } else { "missed" }
@@ -541,6 +636,7 @@ pub fn e6(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
     }
     written.push(write_file(&options.out.join("e6.md"), &md)?);
     written.push(write_file(&options.out.join("e6.csv"), &csv)?);
+    written.push(write_file(&options.out.join("e6-seasons.csv"), &seasons)?);
     Ok(written)
 }
 
@@ -555,11 +651,12 @@ pub fn e7(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
     ];
     let mut written = Vec::new();
     let runs = zone_runs(options, "e7", &zones, &mut written)?;
-    let (mut md, csv) = zone_table(
+    let (mut md, csv, seasons) = zone_table(
         "E7: shrinking speed μ",
         &zones,
         &runs,
         &[(6.16, 0.007), (9.53, 0.001), (8.45, 0.003), (7.46, 0.005)],
+        options.seed,
     );
     md.push('\n');
     for ((weather, _), runs) in ZONE_WEATHERS.iter().zip(&runs) {
@@ -567,26 +664,37 @@ pub fn e7(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
         let by_mu = [&runs[0], &runs[3], &runs[2], &runs[1]];
         let more_water = by_mu
             .windows(2)
-            .all(|w| w[1].total_irrigation_mm() >= w[0].total_irrigation_mm());
-        let less_dry = by_mu
-            .windows(2)
-            .all(|w| w[1].dry_violation() <= w[0].dry_violation());
+            .all(|w| w[1].irrigation_mm.mean >= w[0].irrigation_mm.mean);
+        let less_dry = by_mu.windows(2).all(|w| w[1].dry.mean <= w[0].dry.mean);
+        let steps = |f: fn(&ZoneResult) -> SeedMean, digits: usize| {
+            by_mu
+                .iter()
+                .map(|r| {
+                    let m = f(r);
+                    format!("{:.*} ± {:.*}", digits, m.mean, digits, m.standard_error)
+                })
+                .collect::<Vec<_>>()
+                .join(" → ")
+        };
         let _ = writeln!(
             md,
-            "- weather-{weather}, as μ grows (0 → 0.5 → 0.7 → 1): irrigation {} and the dry-side violation {}.",
+            "- weather-{weather}, as μ grows (0 → 0.5 → 0.7 → 1), means over the {ZONE_SEEDS} seeds: irrigation {} ({} mm) and the dry-side violation {} ({}).",
             if more_water {
                 "rises monotonically"
             } else {
                 "does NOT rise monotonically"
             },
-            if less_dry {
-                "falls monotonically"
-            } else {
-                "does NOT fall monotonically"
-            }
+            steps(|r| r.irrigation_mm, 2),
+            if less_dry { "does not rise" } else { "RISES" },
+            by_mu
+                .iter()
+                .map(|r| format!("{:.2e}", r.dry.mean))
+                .collect::<Vec<_>>()
+                .join(" → ")
         );
     }
     written.push(write_file(&options.out.join("e7.md"), &md)?);
     written.push(write_file(&options.out.join("e7.csv"), &csv)?);
+    written.push(write_file(&options.out.join("e7-seasons.csv"), &seasons)?);
     Ok(written)
 }
