@@ -433,3 +433,122 @@ fn estimates_stay_within_physical_bounds() {
     }
     assert!(e.mean_heads().iter().all(|h| h.is_finite() && *h <= 0.0));
 }
+
+/// The "unknown" prior on a sand: the selection drops the textures whose
+/// log-likelihood falls 10 behind the leader's, with their members, and
+/// while it runs the estimate is the leading texture's alone.
+#[test]
+fn the_selection_drops_textures_far_behind_and_reads_the_estimate_from_its_leader() {
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
+    let mut field = Field::new(FieldSettings {
+        soil: Texture::Sand.parameters(),
+        measurement_noise: 0.02,
+        seed: 4,
+        ..FieldSettings::default()
+    })
+    .unwrap();
+    let settings = EstimatorSettings {
+        seed: 9,
+        ..EstimatorSettings::default()
+    };
+    let gap = settings.selection_prune.unwrap();
+    let mut e = Estimator::new(
+        Prior::Unknown,
+        Crop::default(),
+        vec![sensor("root", 0.125)],
+        InitialGuess::Reading(field.measure()),
+        settings,
+    )
+    .unwrap();
+    let start = e.ensemble().ncols();
+    assert_eq!(start, 12 * e.settings().members_per_texture);
+    let mut dropped = false;
+    for k in 0..8 {
+        let forcing = weather.steps()[k].forcing(irrigation(k), DT);
+        let report = field.step(forcing).unwrap();
+        e.predict(forcing, DT).unwrap();
+        e.update(&[(0, report.measured_water_content)]).unwrap();
+        let Some(sel) = e.selection() else { break };
+        assert_eq!(sel.groups.len(), e.ensemble().ncols());
+        let leader = sel.leader();
+        let best = sel.log_likelihood[leader];
+        // every texture left is within the gap; every one gone was behind
+        for g in 0..12 {
+            let present = sel.groups.contains(&g);
+            if present {
+                assert!(sel.log_likelihood[g] >= best - gap, "group {g} kept");
+            }
+        }
+        dropped |= e.ensemble().ncols() < start;
+        // the estimate is the mean of the leader's members only
+        let cols: Vec<usize> = (0..sel.groups.len())
+            .filter(|&j| sel.groups[j] == leader)
+            .collect();
+        let n = e.settings().cells;
+        let ln_ks = cols.iter().map(|&j| e.ensemble()[(n, j)]).sum::<f64>() / cols.len() as f64;
+        let soil = e.soil();
+        assert!(
+            (soil.saturated_conductivity.ln() - ln_ks).abs() < 1e-12,
+            "step {k}: ln Ks {} vs the leader's {ln_ks}",
+            soil.saturated_conductivity.ln()
+        );
+    }
+    assert!(dropped, "no texture was dropped in 8 updates on a sand");
+}
+
+/// While the "unknown" prior selects the texture, a field read above its
+/// zone is not irrigated (the sound start). On a silt read at 0.4645, above
+/// its zone's 0.429, the mixture's mean soil (θs below the zone) made the
+/// first cycle irrigate 6.9 mm before.
+#[test]
+fn a_field_read_above_its_zone_is_not_irrigated_while_its_texture_is_selected() {
+    use rootzone::control::{EstimatedRichards, MpcSettings, ZoneSettings};
+    let silt = Texture::Silt.parameters();
+    let zone = ZoneSettings::default_for(&silt);
+    let reading = 0.4645;
+    assert!(reading > zone.y_up);
+    let settings = MpcSettings {
+        zone,
+        ..MpcSettings::default()
+    };
+    let forecast = vec![
+        rootzone::weather::WeatherStep {
+            start_hour: 0.0,
+            et0_mm: 0.33,
+            precip_mm: 0.0,
+        };
+        20
+    ];
+    let estimator = |prior| {
+        Estimator::new(
+            prior,
+            Crop::default(),
+            vec![sensor("root", 0.125)],
+            InitialGuess::Reading(reading),
+            EstimatorSettings::default(),
+        )
+        .unwrap()
+    };
+    let mut c = EstimatedRichards::new(settings, estimator(Prior::Unknown), Crop::default(), DT)
+        .with_reading(reading);
+    assert!(c.estimator().selecting());
+    let d = c.decide(&forecast);
+    assert_eq!(d.setpoint, 0.0, "plan {:?}", &d.solution.plan[..3]);
+    // a field read below its zone is irrigated while selecting
+    let low = zone.y_low - 0.03;
+    let mut c = EstimatedRichards::new(
+        settings,
+        Estimator::new(
+            Prior::Unknown,
+            Crop::default(),
+            vec![sensor("root", 0.125)],
+            InitialGuess::Reading(low),
+            EstimatorSettings::default(),
+        )
+        .unwrap(),
+        Crop::default(),
+        DT,
+    )
+    .with_reading(low);
+    assert!(c.decide(&forecast).setpoint > 0.0);
+}

@@ -150,11 +150,11 @@ impl Controller {
                     model.et0 = et0;
                     // the first measurement and each one observed since
                     // are the samples
-                    let start_up = super::policy::StartUp {
-                        measured_samples: self.observed + 1,
-                        window: crate::surrogate::evaluate::WINDOW,
-                        measured: self.last_measured,
-                    };
+                    let start_up = super::policy::StartUp::window(
+                        self.observed + 1,
+                        crate::surrogate::evaluate::WINDOW,
+                        self.last_measured,
+                    );
                     (Ok(model.as_mut()), Some(start_up))
                 }
                 (Model::Richards, Some(field)) => {

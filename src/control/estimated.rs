@@ -34,6 +34,9 @@ pub struct EstimatedRichards {
     /// Wall time of the last predict + update.
     last_estimate_time: Duration,
     last_error: Option<String>,
+    /// The latest reading of the sensor at the rooting depth (else of the
+    /// first sensor): the sound start's θ while the texture is selected.
+    last_reading: Option<f64>,
 }
 
 impl EstimatedRichards {
@@ -52,7 +55,15 @@ impl EstimatedRichards {
             resets: 0,
             last_estimate_time: Duration::ZERO,
             last_error: None,
+            last_reading: None,
         }
+    }
+
+    /// The reading the field started from (the sound start's θ until the
+    /// first [`EstimatedRichards::observe`]).
+    pub fn with_reading(mut self, theta: f64) -> EstimatedRichards {
+        self.last_reading = theta.is_finite().then_some(theta);
+        self
     }
 
     pub fn settings(&self) -> &MpcSettings {
@@ -98,7 +109,12 @@ impl EstimatedRichards {
             Ok(m) => Ok(m as &mut dyn PredictionModel),
             Err(e) => Err(e.clone()),
         };
-        let step = policy::step(&mut self.mpc, model, None);
+        // the sound start while the texture is being selected
+        let start_up = self.estimator.selecting().then_some(policy::StartUp {
+            settled: false,
+            measured: self.last_reading,
+        });
+        let step = policy::step(&mut self.mpc, model, start_up);
         let (setpoint, solution) = (step.rate, step.solution);
         Decision { setpoint, solution }
     }
@@ -113,6 +129,21 @@ impl EstimatedRichards {
         readings: &[(usize, f64)],
     ) -> Result<UpdateReport, EstimateError> {
         let start = Instant::now();
+        let estimator = &self.estimator;
+        let depth = estimator.settings().depth;
+        let cells = estimator.settings().cells;
+        let root = crate::estimate::cell_of(self.crop.rooting_depth, depth, cells);
+        let at_root = readings.iter().find(|&&(k, _)| {
+            estimator
+                .sensors()
+                .get(k)
+                .is_some_and(|s| crate::estimate::cell_of(s.depth, depth, cells) == root)
+        });
+        if let Some(&(_, theta)) = at_root.or(readings.first())
+            && theta.is_finite()
+        {
+            self.last_reading = Some(theta);
+        }
         let outcome = self
             .estimator
             .predict(forcing, self.sampling_time)

@@ -71,31 +71,40 @@ pub fn bias(residuals: &[f64]) -> f64 {
     }
 }
 
-/// A sound start for the surrogates (issue 17): while fewer than `window`
-/// samples have been measured, their prediction rests on a padded or
-/// synthesised past, and they mispredict fields outside the range they were
-/// trained on. Then a field whose measured θ lies above its zone's upper
-/// bound `zone_up` now is not irrigated this period: it is re-decided at
-/// the next one, and u_max refills a zone far faster than a crop empties it
-/// (72 mm per 2-h period at the default u_max).
-pub fn start_up_hold(
-    measured_samples: usize,
-    window: usize,
-    measured: Option<f64>,
-    zone_up: f64,
-) -> bool {
-    measured_samples < window && measured.is_some_and(|theta| theta > zone_up)
-}
-
-/// What a surrogate's sound start needs to know ([`start_up_hold`]).
+/// A sound start (issue 17): a model that is not yet settled mispredicts
+/// fields outside the range it knows, so while it is not, a field whose θ
+/// lies above its zone's upper bound now is not irrigated this period: it
+/// is re-decided at the next one, and u_max refills a zone far faster than
+/// a crop empties it (72 mm per 2-h period at the default u_max).
+///
+/// A surrogate is settled once a full window has been measured (before, its
+/// prediction rests on a padded or synthesised past; [`StartUp::window`]).
+/// The estimated Richards model is settled once the "unknown" prior's
+/// texture selection has ended (before, it plans on the texture leading
+/// after a few readings: on a silt whose first leader had θs below the
+/// zone, the first cycle irrigated 10.7 mm into a field above its zone).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StartUp {
-    /// Samples measured so far, this step's included.
-    pub measured_samples: usize,
-    /// Samples a full window holds.
-    pub window: usize,
-    /// The θ measured now, if a fresh measurement exists.
+    pub settled: bool,
+    /// The θ the field is at now (measured, or estimated), if known.
     pub measured: Option<f64>,
+}
+
+impl StartUp {
+    /// A surrogate's start: settled once `measured_samples` (this step's
+    /// included) fill its `window`.
+    pub fn window(measured_samples: usize, window: usize, measured: Option<f64>) -> StartUp {
+        StartUp {
+            settled: measured_samples >= window,
+            measured,
+        }
+    }
+
+    /// Whether the field is held at zero irrigation under a zone whose
+    /// upper bound is `zone_up` now.
+    pub fn holds(&self, zone_up: f64) -> bool {
+        !self.settled && self.measured.is_some_and(|theta| theta > zone_up)
+    }
 }
 
 /// One control step's decision.
@@ -115,8 +124,8 @@ pub struct Step {
 /// daemon's `service::cycle::decide`): the zone MPC solved on `model`, or
 /// the no-irrigation fallback with the reason when there is no model; the
 /// applied rate and the published plan clamped to [0, u_max] (0 for a move
-/// that is not finite); and for a surrogate (`start_up` given) the sound
-/// start's hold.
+/// that is not finite); and while the model is not settled (`start_up`
+/// given) the sound start's hold.
 pub fn step(
     mpc: &mut ZoneMpc,
     model: Result<&mut dyn PredictionModel, String>,
@@ -129,14 +138,7 @@ pub fn step(
     let settings = &mpc.settings;
     let mut rate = applied_rate(&solution.plan, settings.u_max);
     let mut plan = published_plan(&solution.plan, settings.u_max);
-    let held = start_up.is_some_and(|s| {
-        start_up_hold(
-            s.measured_samples,
-            s.window,
-            s.measured,
-            settings.zone.bounds(1, settings.horizon).1,
-        )
-    });
+    let held = start_up.is_some_and(|s| s.holds(settings.zone.bounds(1, settings.horizon).1));
     if held {
         rate = 0.0;
         if let Some(first) = plan.first_mut() {
@@ -259,19 +261,12 @@ mod tests {
         // measured above the zone, but the model (say a padded window)
         // predicts it dry: the plan irrigates, the hold overrides it
         let mut mpc = ZoneMpc::new(MpcSettings::default());
-        let short = StartUp {
-            measured_samples: 3,
-            window: 20,
-            measured: Some(0.25),
-        };
+        let short = StartUp::window(3, 20, Some(0.25));
         let s = step(&mut mpc, Ok(&mut field(0.17)), Some(short));
         assert!(s.held);
         assert_eq!((s.rate, s.plan[0]), (0.0, 0.0));
         assert!(s.solution.plan[0] > 0.0);
-        let full = StartUp {
-            measured_samples: 20,
-            ..short
-        };
+        let full = StartUp::window(20, 20, Some(0.25));
         let mut mpc = ZoneMpc::new(MpcSettings::default());
         let s = step(&mut mpc, Ok(&mut field(0.17)), Some(full));
         assert!(!s.held && s.rate > 0.0);
@@ -327,12 +322,18 @@ mod tests {
 
     #[test]
     fn a_field_above_its_zone_is_held_only_while_the_window_is_incomplete() {
-        assert!(start_up_hold(1, 20, Some(0.26), 0.23));
-        assert!(start_up_hold(19, 20, Some(0.231), 0.23));
-        assert!(!start_up_hold(20, 20, Some(0.26), 0.23));
-        assert!(!start_up_hold(1, 20, Some(0.23), 0.23));
-        assert!(!start_up_hold(1, 20, Some(0.17), 0.23));
-        assert!(!start_up_hold(1, 20, None, 0.23));
+        let held = |samples, theta| StartUp::window(samples, 20, theta).holds(0.23);
+        assert!(held(1, Some(0.26)));
+        assert!(held(19, Some(0.231)));
+        assert!(!held(20, Some(0.26)));
+        assert!(!held(1, Some(0.23)));
+        assert!(!held(1, Some(0.17)));
+        assert!(!held(1, None));
+        let settled = StartUp {
+            settled: true,
+            measured: Some(0.26),
+        };
+        assert!(!settled.holds(0.23));
     }
 
     #[test]

@@ -126,6 +126,12 @@ pub struct EstimatorSettings {
     /// this setting existed analysed heads).
     #[serde(default = "AnalysisVariable::stored_default")]
     pub analysis_variable: AnalysisVariable,
+    /// For the "unknown" prior: a texture whose log-likelihood falls this
+    /// far behind the leader's is dropped from the selection, its members
+    /// with it (None: every texture runs to the end of the selection, as
+    /// estimates stored before this setting existed do).
+    #[serde(default)]
+    pub selection_prune: Option<f64>,
 }
 
 /// The variable in which the analysis updates the cells of a member.
@@ -168,6 +174,7 @@ impl Default for EstimatorSettings {
             selection_updates: 12,
             members_per_texture: 8,
             analysis_variable: AnalysisVariable::WaterContent,
+            selection_prune: Some(10.0),
         }
     }
 }
@@ -204,6 +211,11 @@ impl EstimatorSettings {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be finite and >= 0, got {v}"));
             }
+        }
+        if let Some(gap) = self.selection_prune
+            && !(gap.is_finite() && gap > 0.0)
+        {
+            return Err(format!("selection_prune must be finite and > 0, got {gap}"));
         }
         if let Some(c) = self.localisation
             && !(c.is_finite() && c > 0.0)
@@ -356,6 +368,21 @@ pub struct Selection {
     pub groups: Vec<usize>,
     pub log_likelihood: Vec<f64>,
     pub updates: usize,
+}
+
+impl Selection {
+    /// The most likely texture group so far.
+    pub fn leader(&self) -> usize {
+        (0..self.log_likelihood.len())
+            .filter(|g| self.groups.contains(g))
+            .max_by(|&a, &b| self.log_likelihood[a].total_cmp(&self.log_likelihood[b]))
+            .unwrap_or(0)
+    }
+
+    /// Whether one texture group is left.
+    fn single(&self) -> bool {
+        self.groups.windows(2).all(|w| w[0] == w[1])
+    }
 }
 
 impl Estimator {
@@ -754,6 +781,17 @@ impl Estimator {
                     }
                 }
                 selection.updates += 1;
+                if let Some(gap) = self.settings.selection_prune {
+                    // textures far behind the leader leave with their members
+                    let best = selection.log_likelihood[selection.leader()];
+                    let keep: Vec<usize> = (0..members)
+                        .filter(|&j| selection.log_likelihood[selection.groups[j]] >= best - gap)
+                        .collect();
+                    if keep.len() < members {
+                        self.ensemble = self.ensemble.select_columns(keep.iter());
+                        selection.groups = keep.iter().map(|&j| selection.groups[j]).collect();
+                    }
+                }
                 // the innovation statistics of the whole mixture
                 let scale = 1.0 / (members as f64 - 1.0);
                 let overall: Vec<f64> = (0..m)
@@ -766,7 +804,7 @@ impl Estimator {
                         ss * scale + r[l]
                     })
                     .collect();
-                if selection.updates >= self.settings.selection_updates {
+                if selection.updates >= self.settings.selection_updates || selection.single() {
                     self.finish_selection(&selection);
                 } else {
                     self.selection = Some(selection);
@@ -795,9 +833,7 @@ impl Estimator {
     /// Keeps the most likely texture's members and refills the ensemble
     /// to `members` with jittered copies of them.
     fn finish_selection(&mut self, selection: &Selection) {
-        let best = (0..selection.log_likelihood.len())
-            .max_by(|&a, &b| selection.log_likelihood[a].total_cmp(&selection.log_likelihood[b]))
-            .unwrap_or(0);
+        let best = selection.leader();
         let keep: Vec<usize> = (0..self.ensemble.ncols())
             .filter(|&j| selection.groups[j] == best)
             .collect();
@@ -956,10 +992,29 @@ impl Estimator {
         self.last_update = None;
     }
 
-    /// The mean soil (transformed parameters averaged, clamped to the bounds).
+    /// The members the estimate is read from: all of them, or while a
+    /// texture selection runs and a reading has ranked the textures, those
+    /// of the most likely texture so far (the
+    /// mixture's mean soil is no soil at all: on a silt it put the zone
+    /// above the mean soil's θs, and the first cycle irrigated 6.9 mm into a
+    /// field above its zone).
+    fn active(&self) -> Vec<usize> {
+        let all = self.ensemble.ncols();
+        match &self.selection {
+            // once a reading has ranked the textures
+            Some(sel) if sel.updates > 0 => {
+                let g = sel.leader();
+                (0..all).filter(|&j| sel.groups[j] == g).collect()
+            }
+            _ => (0..all).collect(),
+        }
+    }
+
+    /// The mean soil (transformed parameters averaged, clamped to the
+    /// bounds), of the active members ([`Estimator::active`]).
     pub fn soil(&self) -> VanGenuchten {
         let n = self.cells();
-        let mean = analysis::row_means(&self.ensemble);
+        let mean = analysis::row_means(&self.ensemble.select_columns(self.active().iter()));
         let p: Vec<f64> = (0..PARAMETERS).map(|q| mean[n + q]).collect();
         prior::to_soil(&p)
     }
@@ -982,18 +1037,19 @@ impl Estimator {
 
     /// Ensemble mean of the heads, cell by cell.
     pub fn mean_member_heads(&self) -> Vec<f64> {
-        let mean = analysis::row_means(&self.ensemble);
+        let mean = analysis::row_means(&self.ensemble.select_columns(self.active().iter()));
         mean.iter().take(self.cells()).copied().collect()
     }
 
     /// The parameters with their ensemble standard deviations.
     pub fn parameters(&self) -> Vec<ParameterEstimate> {
         let n = self.cells();
-        let members = self.ensemble.ncols();
-        let mean = analysis::row_means(&self.ensemble);
+        let ensemble = self.ensemble.select_columns(self.active().iter());
+        let members = ensemble.ncols();
+        let mean = analysis::row_means(&ensemble);
         (0..PARAMETERS)
             .map(|q| {
-                let row = self.ensemble.row(n + q);
+                let row = ensemble.row(n + q);
                 let transformed_sd = sd(row.iter().copied(), mean[n + q], members);
                 let naturals: Vec<f64> = row.iter().map(|&v| prior::natural(q, v)).collect();
                 let natural_mean = naturals.iter().sum::<f64>() / members as f64;
@@ -1013,13 +1069,16 @@ impl Estimator {
     /// θ mean and standard deviation of every cell, top first.
     pub fn profile(&self) -> Vec<ProfilePoint> {
         let n = self.cells();
-        let members = self.ensemble.ncols();
-        let soils: Vec<VanGenuchten> = (0..members).map(|j| self.member_soil(j)).collect();
+        let active = self.active();
+        let members = active.len();
+        let soils: Vec<VanGenuchten> = active.iter().map(|&j| self.member_soil(j)).collect();
         let dz = self.settings.depth / n as f64;
         (0..n)
             .map(|i| {
-                let theta: Vec<f64> = (0..members)
-                    .map(|j| soils[j].water_content(self.ensemble[(i, j)]))
+                let theta: Vec<f64> = active
+                    .iter()
+                    .zip(&soils)
+                    .map(|(&j, soil)| soil.water_content(self.ensemble[(i, j)]))
                     .collect();
                 let mean = theta.iter().sum::<f64>() / members as f64;
                 ProfilePoint {

@@ -265,12 +265,9 @@ pub fn run_case(case: &Case) -> Result<ObservedRun, String> {
                 estimator_settings,
             );
             match estimator {
-                Ok(e) => LoopController::Estimated(Box::new(EstimatedRichards::new(
-                    mpc,
-                    e,
-                    Crop::default(),
-                    dt,
-                ))),
+                Ok(e) => LoopController::Estimated(Box::new(
+                    EstimatedRichards::new(mpc, e, Crop::default(), dt).with_reading(first[0]),
+                )),
                 Err(e) => {
                     failure = Some(e);
                     LoopController::Oracle(Controller::oracle(mpc, dt))

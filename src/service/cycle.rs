@@ -55,6 +55,9 @@ pub struct EstimateView {
     /// Standard deviation of the estimated θ in the model's output cell
     /// (the zone's back-off, [`policy::backed_off`]).
     pub output_sd: f64,
+    /// Whether the "unknown" prior is still selecting the texture (the
+    /// Richards model is not settled: [`policy::StartUp`]).
+    pub selecting: bool,
 }
 
 impl CycleInputs {
@@ -263,12 +266,20 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         (None, None) if current.is_none() => Err("no measurement yet: no irrigation".into()),
         (None, None) => Err("no prediction model: no irrigation".into()),
     };
-    // the surrogates' sound start; the Richards model starts from a state
-    let start_up = (spec.model != ModelKind::Richards).then(|| policy::StartUp {
-        measured_samples,
-        window: WINDOW,
-        measured: fresh.map(|m| m.theta),
-    });
+    // the sound start: a surrogate until its window is full, the Richards
+    // model while its estimate is still selecting the texture
+    let start_up = match (spec.model, &inputs.estimate) {
+        (ModelKind::Richards, Some(e)) if e.selecting => Some(policy::StartUp {
+            settled: false,
+            measured: fresh.map(|m| m.theta),
+        }),
+        (ModelKind::Richards, _) => None,
+        _ => Some(policy::StartUp::window(
+            measured_samples,
+            WINDOW,
+            fresh.map(|m| m.theta),
+        )),
+    };
     let policy::Step {
         rate,
         plan,
@@ -1049,6 +1060,7 @@ mod tests {
             soil,
             depth: 0.5,
             output_sd: 0.0,
+            selecting: false,
         }
     }
 
@@ -1076,6 +1088,39 @@ mod tests {
                 assert_eq!(z[1], 0.23, "{model:?} sd {sd}");
             }
         }
+    }
+
+    #[test]
+    fn a_richards_field_whose_texture_is_still_being_selected_is_not_irrigated_above_its_zone() {
+        // the estimate (its leading texture) says dry, the sensor says wet
+        let m = models();
+        let mut rates = Vec::new();
+        for selecting in [true, false] {
+            let mut i = inputs(ModelKind::Richards);
+            i.measurements = vec![reading("2026-06-02T11:55:00Z", 0.25)];
+            i.estimate = Some(EstimateView {
+                selecting,
+                ..view_at(0.14)
+            });
+            let sp = decide(&i, &m, &cancel());
+            rates.push(sp.rate);
+            // a held field publishes the zero it applies
+            assert_eq!(
+                sp.plan.first().copied(),
+                Some(sp.rate),
+                "selecting {selecting}"
+            );
+        }
+        assert_eq!(rates[0], 0.0, "held while selecting");
+        assert!(rates[1] > 0.0, "the settled estimate irrigates: {rates:?}");
+        // below its zone a selecting field is irrigated
+        let mut i = inputs(ModelKind::Richards);
+        i.measurements = vec![reading("2026-06-02T11:55:00Z", 0.15)];
+        i.estimate = Some(EstimateView {
+            selecting: true,
+            ..view_at(0.14)
+        });
+        assert!(decide(&i, &m, &cancel()).rate > 0.0);
     }
 
     #[test]

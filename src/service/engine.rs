@@ -582,6 +582,7 @@ impl Engine {
                 soil: est.soil(),
                 depth: est.settings().depth,
                 output_sd: est.output_sd(),
+                selecting: est.selecting(),
             }),
             done.flags,
             Some(body),
@@ -731,6 +732,7 @@ impl Engine {
             soil: est.soil(),
             depth: est.settings().depth,
             output_sd: est.output_sd(),
+            selecting: est.selecting(),
         })
     }
 
