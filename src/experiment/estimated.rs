@@ -362,8 +362,9 @@ pub fn trace(run: &ObservedRun) -> String {
     csv
 }
 
-/// The plants of E8: six textures whose default zone is at least 0.02 wide
-/// and perturbed sandy loams (MODEL.md §6).
+/// The plants of E8 (MODEL.md §6): sandy loam, the six textures whose
+/// default zone is at least 0.02 wide (sand, loamy sand, loam, silt, silt
+/// loam, sandy clay loam) and four perturbed sandy loams.
 pub fn e8_plants() -> Vec<(String, VanGenuchten, Prior)> {
     let sl = VanGenuchten::SANDY_LOAM;
     let perturbed = |label: &str, ks: f64, alpha: f64, n: f64| {
@@ -390,6 +391,9 @@ pub fn e8_plants() -> Vec<(String, VanGenuchten, Prior)> {
         texture(Texture::Sand),
         texture(Texture::LoamySand),
         texture(Texture::Loam),
+        texture(Texture::Silt),
+        texture(Texture::SiltLoam),
+        texture(Texture::SandyClayLoam),
         perturbed("Ks × 0.5, α × 1.3", 0.5, 1.3, 1.0),
         perturbed("Ks × 2, α × 0.8, n × 1.05", 2.0, 0.8, 1.05),
         perturbed("Ks × 0.7, α × 1.2", 0.7, 1.2, 1.0),
