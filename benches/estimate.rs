@@ -1,7 +1,9 @@
 //! Cost of the estimator (issue target: one update ≤ 5 ms): one predict of
 //! every member over a 2-h step of weather-dry plus one update with the
 //! sensor at 0.125 m, from a filter that has run a day, for the default 32
-//! members and smaller ensembles.
+//! members and smaller ensembles; and one step of the "unknown" prior while
+//! it still selects the texture (after 2 updates: every texture's members
+//! that are left, up to 96).
 
 use std::hint::black_box;
 
@@ -12,7 +14,11 @@ use rootzone::weather::{DRY_SCENARIO, WeatherSeries};
 
 const DT: f64 = 7200.0;
 
-fn warmed(members: usize, prior: Prior) -> (Estimator, rootzone::soil::Forcing, f64) {
+fn warmed(
+    members: usize,
+    prior: Prior,
+    updates: usize,
+) -> (Estimator, rootzone::soil::Forcing, f64) {
     let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
     let mut field = Field::new(FieldSettings {
         process_noise: 0.02,
@@ -38,7 +44,7 @@ fn warmed(members: usize, prior: Prior) -> (Estimator, rootzone::soil::Forcing, 
     )
     .unwrap();
     let mut last = 0.0;
-    for k in 0..12 {
+    for k in 0..updates {
         let u = if (3..6).contains(&(k % 12)) {
             6e-7
         } else {
@@ -49,7 +55,7 @@ fn warmed(members: usize, prior: Prior) -> (Estimator, rootzone::soil::Forcing, 
         e.predict(f, DT).unwrap();
         e.update(&[(0, last)]).unwrap();
     }
-    (e, weather.steps()[12].forcing(0.0, DT), last)
+    (e, weather.steps()[updates].forcing(0.0, DT), last)
 }
 
 fn bench_step(c: &mut Criterion) {
@@ -58,6 +64,7 @@ fn bench_step(c: &mut Criterion) {
     for (members, prior, label) in [
         (32, Prior::Texture(Texture::SandyLoam), "32_texture"),
         (32, Prior::Unknown, "32_unknown"),
+        (16, Prior::Unknown, "unknown_selecting"),
         (16, Prior::Texture(Texture::SandyLoam), "16_texture"),
         (64, Prior::Texture(Texture::SandyLoam), "64_texture"),
         (
@@ -66,7 +73,12 @@ fn bench_step(c: &mut Criterion) {
             "16_texture_irrigated",
         ),
     ] {
-        let (e, mut forcing, reading) = warmed(members, prior);
+        let updates = if label.ends_with("selecting") { 2 } else { 12 };
+        let (e, mut forcing, reading) = warmed(members, prior, updates);
+        if label.ends_with("selecting") {
+            assert!(e.selecting(), "{label}: the selection has ended");
+            eprintln!("{label}: {} members", e.ensemble().ncols());
+        }
         if label.ends_with("irrigated") {
             // a dry field's cycle: irrigation at 3e-6 m/s over the step
             forcing.irrigation = 3e-6;

@@ -45,6 +45,7 @@ pub mod prior;
 use nalgebra::DMatrix;
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::soil::{
@@ -547,25 +548,35 @@ impl Estimator {
             step_attempts: self.settings.step_attempts,
             newton_iterations: self.settings.newton_iterations,
         };
+        // the members are independent: integrated in parallel (rayon's
+        // pool), each with its own integrator, so the result does not
+        // depend on the number of threads
+        let forecasts: Vec<Result<Option<Vec<f64>>, String>> = (0..members)
+            .into_par_iter()
+            .map(|j| {
+                let soil = self.member_soil(j);
+                let column = Column::new(soil, self.crop, self.settings.depth, n)?;
+                let mut integrator = Integrator::new(column, tolerances)?;
+                integrator.set_limits(limits);
+                let mut state = ColumnState {
+                    heads: (0..n).map(|i| self.ensemble[(i, j)]).collect(),
+                    amounts: [0.0; 4],
+                };
+                Ok(integrator
+                    .advance(&mut state, self.time, duration_s, forcing)
+                    .ok()
+                    .map(|()| state.heads))
+            })
+            .collect();
         let mut ok = vec![true; members];
-        for j in 0..members {
-            let soil = self.member_soil(j);
-            let column = Column::new(soil, self.crop, self.settings.depth, n)
-                .map_err(EstimateError::Diverged)?;
-            let mut integrator =
-                Integrator::new(column, tolerances).map_err(EstimateError::Diverged)?;
-            integrator.set_limits(limits);
-            let mut state = ColumnState {
-                heads: (0..n).map(|i| self.ensemble[(i, j)]).collect(),
-                amounts: [0.0; 4],
-            };
-            match integrator.advance(&mut state, self.time, duration_s, forcing) {
-                Ok(()) => {
-                    for i in 0..n {
-                        self.ensemble[(i, j)] = state.heads[i];
+        for (j, forecast) in forecasts.into_iter().enumerate() {
+            match forecast.map_err(EstimateError::Diverged)? {
+                Some(heads) => {
+                    for (i, h) in heads.into_iter().enumerate() {
+                        self.ensemble[(i, j)] = h;
                     }
                 }
-                Err(_) => ok[j] = false,
+                None => ok[j] = false,
             }
         }
         let good: Vec<usize> = (0..members).filter(|&j| ok[j]).collect();
