@@ -4,8 +4,8 @@
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rootzone::control::{
-    ModelError, MpcSettings, PredictionModel, SolveStatus, SurrogateModel, ZoneMpc, ZoneSettings,
-    objective,
+    LinearModel, ModelError, MpcSettings, PredictionModel, SolveStatus, SurrogateModel, ZoneMpc,
+    ZoneSettings, objective,
 };
 use rootzone::surrogate::ModelFile;
 
@@ -31,44 +31,6 @@ fn zone_matches_hand_computed_values() {
     assert_eq!(fixed.bounds(20, 20), (0.18, 0.23));
     assert!(fixed.problem().is_none());
     assert!(ZoneSettings { mu: -1.0, ..z }.problem().is_some());
-}
-
-/// ŷ_k = a_k + Σ_{j ≤ k} b·ρ^(k−j)·u_j: linear, so the MPC problem is convex.
-struct Linear {
-    a: Vec<f64>,
-    b: f64,
-    rho: f64,
-}
-
-impl PredictionModel for Linear {
-    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
-        for (k, o) in out.iter_mut().enumerate() {
-            *o = self.a[k]
-                + (0..=k)
-                    .map(|j| self.b * self.rho.powi((k - j) as i32) * plan[j])
-                    .sum::<f64>();
-        }
-        Ok(())
-    }
-    fn predict_with_jacobian(
-        &mut self,
-        plan: &[f64],
-        out: &mut [f64],
-        jac: &mut [f64],
-    ) -> Result<(), ModelError> {
-        let n = out.len();
-        self.predict(plan, out)?;
-        for k in 0..n {
-            for j in 0..n {
-                jac[k * n + j] = if j <= k {
-                    self.b * self.rho.powi((k - j) as i32)
-                } else {
-                    0.0
-                };
-            }
-        }
-        Ok(())
-    }
 }
 
 fn cost(settings: &MpcSettings, model: &mut dyn PredictionModel, ubar: &[f64]) -> f64 {
@@ -98,7 +60,7 @@ fn sqp_solution_satisfies_the_kkt_conditions_of_a_convex_problem() {
     for (start, b, rho) in [(0.15, 600.0, 0.85), (0.26, 800.0, 0.7), (0.19, 300.0, 0.9)] {
         // dries out by 0.004 per step without irrigation
         let a: Vec<f64> = (0..20).map(|k| start - 0.004 * k as f64).collect();
-        let mut model = Linear { a, b, rho };
+        let mut model = LinearModel { a, b, rho };
         let mut mpc = ZoneMpc::new(settings);
         let sol = mpc.solve(&mut model);
         assert_eq!(sol.status, SolveStatus::Converged, "{sol:?}");
@@ -270,7 +232,7 @@ fn a_model_returning_nan_gives_a_flagged_safe_plan() {
     let settings = MpcSettings::default();
     let mut mpc = ZoneMpc::new(settings);
     // first a good solve, so that there is a plan to fall back on
-    let mut good = Linear {
+    let mut good = LinearModel {
         a: (0..20).map(|k| 0.16 - 0.004 * k as f64).collect(),
         b: 600.0,
         rho: 0.85,

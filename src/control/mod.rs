@@ -16,6 +16,6 @@ pub use closed_loop::{
 };
 pub use controller::{Controller, Decision};
 pub use estimated::EstimatedRichards;
-pub use model::{ModelError, PredictionModel, RichardsModel, SurrogateModel};
+pub use model::{LinearModel, ModelError, PredictionModel, RichardsModel, SurrogateModel};
 pub use mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc, objective};
 pub use zone::ZoneSettings;

@@ -152,6 +152,50 @@ fn finite(out: &[f64]) -> Result<(), ModelError> {
     }
 }
 
+/// A linear prediction model, `ŷ_k = a_k + b·Σ_{j ≤ k} ρ^(k−j)·u_j`
+/// (k = 0-based horizon step, u in m/s), with its exact Jacobian: the zone
+/// MPC's problem on it is convex, which makes it the independent yardstick
+/// of the solver's and the control step's tests. `a` holds the free
+/// response (no irrigation) over the horizon.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinearModel {
+    pub a: Vec<f64>,
+    pub b: f64,
+    pub rho: f64,
+}
+
+impl PredictionModel for LinearModel {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        for (k, o) in out.iter_mut().enumerate() {
+            *o = self.a[k]
+                + (0..=k)
+                    .map(|j| self.b * self.rho.powi((k - j) as i32) * plan[j])
+                    .sum::<f64>();
+        }
+        Ok(())
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        let n = out.len();
+        self.predict(plan, out)?;
+        for k in 0..n {
+            for j in 0..n {
+                jac[k * n + j] = if j <= k {
+                    self.b * self.rho.powi((k - j) as i32)
+                } else {
+                    0.0
+                };
+            }
+        }
+        Ok(())
+    }
+}
+
 impl PredictionModel for SurrogateModel {
     fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
         let (supply, e) = self.inputs(plan);

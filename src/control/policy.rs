@@ -80,9 +80,10 @@ pub fn bias(residuals: &[f64]) -> f64 {
 /// A surrogate is settled once a full window has been measured (before, its
 /// prediction rests on a padded or synthesised past; [`StartUp::window`]).
 /// The estimated Richards model is settled once the "unknown" prior's
-/// texture selection has ended (before, it plans on the texture leading
-/// after a few readings: on a silt whose first leader had θs below the
-/// zone, the first cycle irrigated 10.7 mm into a field above its zone).
+/// texture selection has ended (before, it plans on the mean of the
+/// textures still in the running, which is no soil: on a silt read at
+/// 0.4645, above its zone, that mean's θs lay below the zone and the first
+/// cycle irrigated 6.9 mm).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StartUp {
     pub settled: bool,
@@ -171,53 +172,15 @@ pub fn no_irrigation(settings: &MpcSettings, reason: impl Into<String>) -> Solut
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::control::model::ModelError;
+    use crate::control::model::LinearModel;
 
-    /// θ_k = θ0 − d·k + g·Σ_{j≤k} u_j (Jacobian exact); fails when `broken`.
-    struct Linear {
-        theta0: f64,
-        d: f64,
-        g: f64,
-        broken: bool,
-    }
-
-    impl PredictionModel for Linear {
-        fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
-            if self.broken {
-                return Err(ModelError("broken".into()));
-            }
-            let mut sum = 0.0;
-            for (k, (u, y)) in plan.iter().zip(out.iter_mut()).enumerate() {
-                sum += u;
-                *y = self.theta0 - self.d * (k + 1) as f64 + self.g * sum;
-            }
-            Ok(())
-        }
-
-        fn predict_with_jacobian(
-            &mut self,
-            plan: &[f64],
-            out: &mut [f64],
-            jac: &mut [f64],
-        ) -> Result<(), ModelError> {
-            self.predict(plan, out)?;
-            let n = plan.len();
-            for k in 0..n {
-                for j in 0..n {
-                    jac[k * n + j] = if j <= k { self.g } else { 0.0 };
-                }
-            }
-            Ok(())
-        }
-    }
-
-    fn field(theta0: f64) -> Linear {
-        // 1e-5 m/s over one step raises θ by 0.01; the crop takes 0.002
-        Linear {
-            theta0,
-            d: 0.002,
-            g: 1e3,
-            broken: false,
+    /// θ_k = θ0 − 0.002·k + 1e3·Σ_{j≤k} u_j (k = 1..N): 1e-5 m/s over one
+    /// step raises θ by 0.01, the crop takes 0.002.
+    fn field(theta0: f64) -> LinearModel {
+        LinearModel {
+            a: (1..=20).map(|k| theta0 - 0.002 * k as f64).collect(),
+            b: 1e3,
+            rho: 1.0,
         }
     }
 
@@ -249,8 +212,9 @@ mod tests {
             s.solution.status,
             SolveStatus::Fallback("no model here".into())
         );
+        // a model whose predictions are not finite
         let mut broken = field(0.17);
-        broken.broken = true;
+        broken.a[3] = f64::NAN;
         let s = step(&mut mpc, Ok(&mut broken), None);
         assert_eq!(s.rate, 0.0);
         assert!(matches!(s.solution.status, SolveStatus::Fallback(_)));

@@ -1003,29 +1003,10 @@ impl Estimator {
         self.last_update = None;
     }
 
-    /// The members the estimate is read from: all of them, or while a
-    /// texture selection runs and a reading has ranked the textures, those
-    /// of the most likely texture so far (the
-    /// mixture's mean soil is no soil at all: on a silt it put the zone
-    /// above the mean soil's θs, and the first cycle irrigated 6.9 mm into a
-    /// field above its zone).
-    fn active(&self) -> Vec<usize> {
-        let all = self.ensemble.ncols();
-        match &self.selection {
-            // once a reading has ranked the textures
-            Some(sel) if sel.updates > 0 => {
-                let g = sel.leader();
-                (0..all).filter(|&j| sel.groups[j] == g).collect()
-            }
-            _ => (0..all).collect(),
-        }
-    }
-
-    /// The mean soil (transformed parameters averaged, clamped to the
-    /// bounds), of the active members ([`Estimator::active`]).
+    /// The mean soil (transformed parameters averaged, clamped to the bounds).
     pub fn soil(&self) -> VanGenuchten {
         let n = self.cells();
-        let mean = analysis::row_means(&self.ensemble.select_columns(self.active().iter()));
+        let mean = analysis::row_means(&self.ensemble);
         let p: Vec<f64> = (0..PARAMETERS).map(|q| mean[n + q]).collect();
         prior::to_soil(&p)
     }
@@ -1048,19 +1029,18 @@ impl Estimator {
 
     /// Ensemble mean of the heads, cell by cell.
     pub fn mean_member_heads(&self) -> Vec<f64> {
-        let mean = analysis::row_means(&self.ensemble.select_columns(self.active().iter()));
+        let mean = analysis::row_means(&self.ensemble);
         mean.iter().take(self.cells()).copied().collect()
     }
 
     /// The parameters with their ensemble standard deviations.
     pub fn parameters(&self) -> Vec<ParameterEstimate> {
         let n = self.cells();
-        let ensemble = self.ensemble.select_columns(self.active().iter());
-        let members = ensemble.ncols();
-        let mean = analysis::row_means(&ensemble);
+        let members = self.ensemble.ncols();
+        let mean = analysis::row_means(&self.ensemble);
         (0..PARAMETERS)
             .map(|q| {
-                let row = ensemble.row(n + q);
+                let row = self.ensemble.row(n + q);
                 let transformed_sd = sd(row.iter().copied(), mean[n + q], members);
                 let naturals: Vec<f64> = row.iter().map(|&v| prior::natural(q, v)).collect();
                 let natural_mean = naturals.iter().sum::<f64>() / members as f64;
@@ -1080,16 +1060,13 @@ impl Estimator {
     /// θ mean and standard deviation of every cell, top first.
     pub fn profile(&self) -> Vec<ProfilePoint> {
         let n = self.cells();
-        let active = self.active();
-        let members = active.len();
-        let soils: Vec<VanGenuchten> = active.iter().map(|&j| self.member_soil(j)).collect();
+        let members = self.ensemble.ncols();
+        let soils: Vec<VanGenuchten> = (0..members).map(|j| self.member_soil(j)).collect();
         let dz = self.settings.depth / n as f64;
         (0..n)
             .map(|i| {
-                let theta: Vec<f64> = active
-                    .iter()
-                    .zip(&soils)
-                    .map(|(&j, soil)| soil.water_content(self.ensemble[(i, j)]))
+                let theta: Vec<f64> = (0..members)
+                    .map(|j| soils[j].water_content(self.ensemble[(i, j)]))
                     .collect();
                 let mean = theta.iter().sum::<f64>() / members as f64;
                 ProfilePoint {

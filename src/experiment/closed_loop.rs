@@ -547,39 +547,30 @@ fn zone_table(
             } else {
                 "–".into()
             };
+            let violations = [r.dry, r.wet_after_entry, r.total];
+            let cell = |m: &SeedMean| format!("{:.2e} ± {:.1e}", m.mean, m.standard_error);
             let _ = writeln!(
                 md,
-                "| {weather} | {label} | {:.2} ± {:.2} | {:+.1} | {:.2e} ± {:.1e} | {dry_delta} | {:.2e} ± {:.1e} | {:.2e} ± {:.1e} | {:.1} | {} | {} |",
+                "| {weather} | {label} | {:.2} ± {:.2} | {:+.1} | {} | {dry_delta} | {} | {} | {:.1} | {} | {} |",
                 r.irrigation_mm.mean,
                 r.irrigation_mm.standard_error,
                 percent(r.irrigation_mm.mean, base.irrigation_mm.mean),
-                r.dry.mean,
-                r.dry.standard_error,
-                r.wet_after_entry.mean,
-                r.wet_after_entry.standard_error,
-                r.total.mean,
-                r.total.standard_error,
+                cell(&violations[0]),
+                cell(&violations[1]),
+                cell(&violations[2]),
                 r.solve_median_ms,
                 paper[i].0,
                 paper[i].1
             );
+            let means = std::iter::once(r.irrigation_mm)
+                .chain(violations)
+                .map(|m| format!("{},{}", m.mean, m.standard_error))
+                .collect::<Vec<_>>()
+                .join(",");
             let _ = writeln!(
                 csv,
-                "{weather},\"{label}\",{},{},{},{ZONE_SEEDS},{},{},{},{},{},{},{},{},{},{},{}",
-                z.y_low,
-                z.y_up,
-                z.mu,
-                r.irrigation_mm.mean,
-                r.irrigation_mm.standard_error,
-                r.dry.mean,
-                r.dry.standard_error,
-                r.wet_after_entry.mean,
-                r.wet_after_entry.standard_error,
-                r.total.mean,
-                r.total.standard_error,
-                r.solve_median_ms,
-                paper[i].0,
-                paper[i].1
+                "{weather},\"{label}\",{},{},{},{ZONE_SEEDS},{means},{},{},{}",
+                z.y_low, z.y_up, z.mu, r.solve_median_ms, paper[i].0, paper[i].1
             );
             for (seed, it, dry, wet, total) in &r.seasons {
                 let _ = writeln!(
