@@ -34,8 +34,9 @@ pub struct EstimatedRichards {
     /// Wall time of the last predict + update.
     last_estimate_time: Duration,
     last_error: Option<String>,
-    /// The latest reading of the sensor at the rooting depth (else of the
-    /// first sensor): the sound start's θ while the texture is selected.
+    /// The sensor at the rooting depth (else the first one), and its latest
+    /// reading: the sound start's θ while the texture is selected.
+    root_sensor: usize,
     last_reading: Option<f64>,
 }
 
@@ -46,6 +47,13 @@ impl EstimatedRichards {
         crop: Crop,
         sampling_time: f64,
     ) -> EstimatedRichards {
+        let (depth, cells) = (estimator.settings().depth, estimator.settings().cells);
+        let root = crate::estimate::cell_of(crop.rooting_depth, depth, cells);
+        let root_sensor = estimator
+            .sensors()
+            .iter()
+            .position(|s| crate::estimate::cell_of(s.depth, depth, cells) == root)
+            .unwrap_or(0);
         EstimatedRichards {
             zone: settings.zone,
             mpc: ZoneMpc::new(settings),
@@ -55,6 +63,7 @@ impl EstimatedRichards {
             resets: 0,
             last_estimate_time: Duration::ZERO,
             last_error: None,
+            root_sensor,
             last_reading: None,
         }
     }
@@ -105,10 +114,10 @@ impl EstimatedRichards {
             self.sampling_time,
         )
         .map_err(|e| e.to_string());
-        let model = match &mut model {
-            Ok(m) => Ok(m as &mut dyn PredictionModel),
-            Err(e) => Err(e.clone()),
-        };
+        let model = model
+            .as_mut()
+            .map(|m| m as &mut dyn PredictionModel)
+            .map_err(|e| e.clone());
         // the sound start while the texture is being selected
         let start_up = self.estimator.selecting().then_some(policy::StartUp {
             settled: false,
@@ -129,17 +138,7 @@ impl EstimatedRichards {
         readings: &[(usize, f64)],
     ) -> Result<UpdateReport, EstimateError> {
         let start = Instant::now();
-        let estimator = &self.estimator;
-        let depth = estimator.settings().depth;
-        let cells = estimator.settings().cells;
-        let root = crate::estimate::cell_of(self.crop.rooting_depth, depth, cells);
-        let at_root = readings.iter().find(|&&(k, _)| {
-            estimator
-                .sensors()
-                .get(k)
-                .is_some_and(|s| crate::estimate::cell_of(s.depth, depth, cells) == root)
-        });
-        if let Some(&(_, theta)) = at_root.or(readings.first())
+        if let Some(&(_, theta)) = readings.iter().find(|&&(k, _)| k == self.root_sensor)
             && theta.is_finite()
         {
             self.last_reading = Some(theta);

@@ -580,9 +580,10 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
                 ("unknown", 10.0, 2e-4),
                 ("two-layer", f64::NAN, f64::NAN),
             ] {
-                if rows.iter().all(|r| {
-                    !(r.plant == plant && r.weather == *wname && r.controller == controller)
-                }) {
+                if !rows
+                    .iter()
+                    .any(|r| r.plant == plant && r.weather == *wname && r.controller == controller)
+                {
                     continue;
                 }
                 let (i_t, failures) = mean_of(controller, &it);

@@ -260,12 +260,13 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             one_step = Some(model);
         }
     }
-    let model: Result<&mut dyn PredictionModel, String> = match (&mut richards, &mut one_step) {
-        (Some(m), _) => Ok(m),
-        (None, Some(m)) => Ok(m),
-        (None, None) if current.is_none() => Err("no measurement yet: no irrigation".into()),
-        (None, None) => Err("no prediction model: no irrigation".into()),
-    };
+    let model = cycle_model(&mut richards, &mut one_step).ok_or_else(|| {
+        if current.is_none() {
+            "no measurement yet: no irrigation".to_string()
+        } else {
+            "no prediction model: no irrigation".to_string()
+        }
+    });
     // the sound start: a surrogate until its window is full, the Richards
     // model while its estimate is still selecting the texture
     let start_up = match (spec.model, &inputs.estimate) {
@@ -287,11 +288,8 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         ..
     } = policy::step(&mut mpc, model, start_up);
     // θ with no irrigation at all, for the explanation
-    let dry = match (richards.as_mut(), one_step.as_mut()) {
-        (Some(model), _) => without_irrigation(model, n, cancel),
-        (None, Some(model)) => without_irrigation(model, n, cancel),
-        (None, None) => Vec::new(),
-    };
+    let dry = cycle_model(&mut richards, &mut one_step)
+        .map_or_else(Vec::new, |model| without_irrigation(model, n, cancel));
     let (status, reason) = match &solution.status {
         SolveStatus::Converged => ("converged", None),
         SolveStatus::IterationCap => ("iteration-cap", None),
@@ -346,6 +344,18 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         rain_mm: weather.iter().map(|w| w.precip_mm).collect(),
         et0_mm: weather.iter().map(|w| w.et0_mm).collect(),
         explanation: String::new(),
+    }
+}
+
+/// The model a cycle plans on: its Richards model, else its surrogate.
+fn cycle_model<'a>(
+    richards: &'a mut Option<RichardsModel>,
+    surrogate: &'a mut Option<SurrogateModel>,
+) -> Option<&'a mut dyn PredictionModel> {
+    match (richards, surrogate) {
+        (Some(m), _) => Some(m),
+        (None, Some(m)) => Some(m),
+        (None, None) => None,
     }
 }
 
@@ -1092,7 +1102,7 @@ mod tests {
 
     #[test]
     fn a_richards_field_whose_texture_is_still_being_selected_is_not_irrigated_above_its_zone() {
-        // the estimate (its leading texture) says dry, the sensor says wet
+        // the estimate says dry, the sensor says wet
         let m = models();
         let mut rates = Vec::new();
         for selecting in [true, false] {
