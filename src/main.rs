@@ -100,6 +100,11 @@ enum Command {
         /// Validation samples per set (smaller for smoke runs).
         #[arg(long, default_value_t = 5000)]
         samples: usize,
+        /// Seeds per design of E6, E7 and et0 (the seeds S … S + N − 1,
+        /// common to every design; the tables give means ± standard
+        /// errors), 1 … 500.
+        #[arg(long, default_value_t = rootzone::experiment::DEFAULT_SEEDS)]
+        seeds: u64,
     },
     /// A season of any controller against any plant ("what if"): the trace
     /// as CSV, the scores as JSON on standard output.
@@ -267,6 +272,7 @@ fn main() -> ExitCode {
             seed,
             cache,
             samples,
+            seeds,
         } => (|| {
             let id: ExperimentId = id.parse()?;
             let written = run_experiment(
@@ -277,6 +283,7 @@ fn main() -> ExitCode {
                     seed,
                     cache,
                     samples,
+                    seeds,
                 },
             )?;
             for path in written {

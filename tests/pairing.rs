@@ -534,6 +534,7 @@ start = "{}"
         seed: 7,
         cache: pair.dir.path().join("cache"),
         samples: 1000,
+        seeds: 1,
     };
     let models = Models::load(&options).unwrap();
     let scenario = Scenario {

@@ -89,6 +89,24 @@ fn quick_training_end_to_end_learns_and_the_experiments_run_on_its_models() {
     ] {
         assert!(models.join(f).is_file(), "{f} missing");
     }
+    // the last stage refined both compared networks on the same fresh sets
+    // (an impulse set and one per sub-model range, seed 1 + 10), recorded in
+    // their files beside the first stages' sets
+    let refined_sets = |file: &str| {
+        let m = ModelFile::load(&models.join(file)).unwrap();
+        m.metadata
+            .data
+            .iter()
+            .filter(|(k, v)| k.starts_with("training_set_") && v.contains("seed 110"))
+            .count()
+    };
+    assert_eq!(refined_sets("two-layer.json"), 4);
+    assert_eq!(refined_sets("single-lstm.json"), 4);
+    let report = std::fs::read_to_string(models.join("training-report.md")).unwrap();
+    assert!(
+        report.contains("two-layer (refined)") && report.contains("single LSTM (refined)"),
+        "{report}"
+    );
     // the recorded scores are those of the file's model on the quick plan's validation set
     // (600 samples, seed 1), recomputed here independently
     let two = ModelFile::load(&models.join("two-layer.json")).unwrap();
@@ -185,20 +203,49 @@ fn unknown_soil_and_experiment_are_clear_errors() {
     let out = rootzone(&["experiment", "e9"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("e9"));
+    for seeds in ["0", "501"] {
+        let out = rootzone(&[
+            "experiment",
+            "e7",
+            "--seeds",
+            seeds,
+            "--out",
+            "/nonexistent/x",
+        ]);
+        assert_eq!(out.status.code(), Some(2), "--seeds {seeds}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("--seeds") && err.contains(seeds), "{err}");
+    }
 }
 
 #[test]
 fn shipped_models_match_their_recorded_scores_on_fresh_data() {
     let dir = tempfile::tempdir().unwrap();
     let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
-    // a validation set with a seed no training run used
-    let series = validation(3, 3000, 4242, dir.path());
+    // the recorded scores are the file's own: recomputed on the validation
+    // set they name (the full plan's, 5,000 samples of the training seed)
+    let own = validation(3, 5000, 1, dir.path());
+    // and they generalise: a validation set with a seed no training run
+    // used. Validation sets differ in difficulty by themselves: E2's seeds
+    // 1–5 spread the two-layer network's 1-step NRMSE over 0.0084 … 0.0104
+    // (1.24×), so 1.35× of the recorded score is the bound; a network for
+    // another soil or an untrained one is 5× and more off
+    let fresh_set = validation(3, 3000, 4242, dir.path());
     for file in ["two-layer.json", "single-lstm.json"] {
         let model = ModelFile::load(&models.join(file)).unwrap();
-        let fresh = nrmse_scores(&mut model.predictor(), &series);
+        assert!(
+            model.metadata.data["validation_set"].contains("seed 1503"),
+            "{file}: {:?}",
+            model.metadata.data
+        );
+        let again = nrmse_scores(&mut model.predictor(), &own);
+        for (a, r) in again.iter().zip(recorded(&model)) {
+            assert!((a - r).abs() < 1e-12, "{file}: {again:?} vs recorded {r}");
+        }
+        let fresh = nrmse_scores(&mut model.predictor(), &fresh_set);
         for (f, r) in fresh.iter().zip(recorded(&model)) {
             assert!(
-                *f <= 1.2 * r,
+                *f <= 1.35 * r,
                 "{file}: fresh {fresh:?} vs recorded {:?}",
                 recorded(&model)
             );

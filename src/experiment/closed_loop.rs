@@ -396,13 +396,6 @@ fn zone(y_low: f64, y_up: f64, mu: f64) -> ZoneSettings {
 /// The weather files of E6/E7: label and whether it is the rain scenario.
 const ZONE_WEATHERS: [(&str, bool); 2] = [("dry", false), ("rain", true)];
 
-/// Seeds per E6/E7 design: `--seed S` runs S, S + 1, …, S + 19. With 5 %
-/// measurement noise on a zone 0.01 wide, one season's I_T moves by about
-/// ±1.5 mm from seed to seed on weather-rain, more than the shrinking
-/// speeds differ by; the designs are compared on their means (common
-/// random numbers: every design sees the same 20 seeds).
-pub const ZONE_SEEDS: u64 = 20;
-
 /// A mean over the seeds with its standard error.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SeedMean {
@@ -427,7 +420,7 @@ impl SeedMean {
     }
 }
 
-/// One E6/E7 design on one weather file over [`ZONE_SEEDS`] seeds.
+/// One E6/E7 design on one weather file over `--seeds` seeds.
 struct ZoneResult {
     irrigation_mm: SeedMean,
     dry: SeedMean,
@@ -455,7 +448,7 @@ fn zone_runs(
         for (i, (label, z)) in zones.iter().enumerate() {
             let mut seasons = Vec::new();
             let mut medians = Vec::new();
-            for k in 0..ZONE_SEEDS {
+            for k in 0..options.seeds {
                 let seed = options.seed.wrapping_add(k);
                 let run = run(
                     ControllerKind::TwoLayer,
@@ -517,6 +510,7 @@ fn zone_table(
     results: &[Vec<ZoneResult>],
     paper: &[(f64, f64)],
     seed: u64,
+    seeds: u64,
 ) -> (String, String, String) {
     let mut md = format!(
         "# {title}\n\n\
@@ -525,13 +519,13 @@ fn zone_table(
          noise, 20 % forecast error, 60 steps, each weather file. Scored against [0.18, 0.23] \
          for every design: the dry-side violation (mean of max(0, 0.18 − θ)), the wet-side \
          violation after θ first enters the zone, and the total. Every figure is the mean over \
-         the {ZONE_SEEDS} seeds {seed} … {} (every design sees the same seeds) ± its standard \
+         the {seeds} seeds {seed} … {} (every design sees the same seeds) ± its standard \
          error; the solve time is the median of the seasons' medians. Δ: relative to the \
          time-invariant zone on the same weather. The paper's figures (its own weather, one \
          season, total violation) for comparison.\n\n\
          | weather | target zone | I_T [mm] | ΔI_T [%] | dry-side viol. | Δ dry [%] | wet after entry | total viol. | solve median [ms] | paper I_T [mm] | paper violation |\n\
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
-        seed.wrapping_add(ZONE_SEEDS - 1)
+        seed.wrapping_add(seeds - 1)
     );
     let mut csv = String::from(
         "weather,zone,y_low,y_up,mu,seeds,irrigation_mm,irrigation_mm_se,dry_violation,dry_violation_se,wet_violation_after_entry,wet_violation_after_entry_se,total_violation,total_violation_se,solve_median_ms,paper_irrigation_mm,paper_violation\n",
@@ -569,7 +563,7 @@ fn zone_table(
                 .join(",");
             let _ = writeln!(
                 csv,
-                "{weather},\"{label}\",{},{},{},{ZONE_SEEDS},{means},{},{},{}",
+                "{weather},\"{label}\",{},{},{},{seeds},{means},{},{},{}",
                 z.y_low, z.y_up, z.mu, r.solve_median_ms, paper[i].0, paper[i].1
             );
             for (seed, it, dry, wet, total) in &r.seasons {
@@ -600,6 +594,7 @@ pub fn e6(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
         &runs,
         &[(6.16, 0.007), (9.91, 0.0005), (9.53, 0.001)],
         options.seed,
+        options.seeds,
     );
     md.push_str("\nTarget: on every weather file where the time-invariant zone's dry-side violation is at least 1e-4, a shrinking zone cuts it by at least 80 %.\n\n");
     for ((weather, _), runs) in ZONE_WEATHERS.iter().zip(&runs) {
@@ -648,40 +643,75 @@ pub fn e7(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
         &runs,
         &[(6.16, 0.007), (9.53, 0.001), (8.45, 0.003), (7.46, 0.005)],
         options.seed,
+        options.seeds,
     );
     md.push('\n');
     for ((weather, _), runs) in ZONE_WEATHERS.iter().zip(&runs) {
         // ordered by μ: 0, 0.5, 0.7, 1
         let by_mu = [&runs[0], &runs[3], &runs[2], &runs[1]];
-        let more_water = by_mu
-            .windows(2)
-            .all(|w| w[1].irrigation_mm.mean >= w[0].irrigation_mm.mean);
-        let less_dry = by_mu.windows(2).all(|w| w[1].dry.mean <= w[0].dry.mean);
-        let steps = |f: fn(&ZoneResult) -> SeedMean, digits: usize| {
-            by_mu
-                .iter()
+        let means = |rs: &[&ZoneResult], f: fn(&ZoneResult) -> SeedMean, exp: bool| {
+            rs.iter()
                 .map(|r| {
                     let m = f(r);
-                    format!("{:.*} ± {:.*}", digits, m.mean, digits, m.standard_error)
+                    if exp {
+                        format!("{:.2e} ± {:.1e}", m.mean, m.standard_error)
+                    } else {
+                        format!("{:.2} ± {:.2}", m.mean, m.standard_error)
+                    }
                 })
                 .collect::<Vec<_>>()
                 .join(" → ")
         };
+        // the steps seed by seed (common random numbers), mean ± standard error
+        let paired = |w: &[&ZoneResult], f: fn(&(u64, f64, f64, f64, f64)) -> f64, exp: bool| {
+            let d: Vec<f64> = w[1]
+                .seasons
+                .iter()
+                .zip(&w[0].seasons)
+                .map(|(b, a)| f(b) - f(a))
+                .collect();
+            let m = SeedMean::of(&d);
+            if exp {
+                format!("{:+.1e} ± {:.1e}", m.mean, m.standard_error)
+            } else {
+                format!("{:+.2} ± {:.2}", m.mean, m.standard_error)
+            }
+        };
+        let steps = |rs: &[&ZoneResult], f: fn(&(u64, f64, f64, f64, f64)) -> f64, exp: bool| {
+            rs.windows(2)
+                .map(|w| paired(w, f, exp))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        // E7's designs (MODEL.md §5) are the shrinking speeds; the
+        // time-invariant zone is E6's reference, reported beside them
+        let speeds = &by_mu[1..];
+        let more_water = speeds
+            .windows(2)
+            .all(|w| w[1].irrigation_mm.mean >= w[0].irrigation_mm.mean);
+        let less_dry = speeds.windows(2).all(|w| w[1].dry.mean <= w[0].dry.mean);
         let _ = writeln!(
             md,
-            "- weather-{weather}, as μ grows (0 → 0.5 → 0.7 → 1), means over the {ZONE_SEEDS} seeds: irrigation {} ({} mm) and the dry-side violation {} ({}).",
+            "- weather-{weather}, μ = 0.5 → 0.7 → 1 (the target), means over the {} seeds: irrigation {} ({} mm; steps seed by seed {} mm) and the dry-side violation {} ({}; steps {}).",
+            options.seeds,
             if more_water {
                 "rises monotonically"
             } else {
                 "does NOT rise monotonically"
             },
-            steps(|r| r.irrigation_mm, 2),
+            means(speeds, |r| r.irrigation_mm, false),
+            steps(speeds, |s| s.1, false),
             if less_dry { "does not rise" } else { "RISES" },
-            by_mu
-                .iter()
-                .map(|r| format!("{:.2e}", r.dry.mean))
-                .collect::<Vec<_>>()
-                .join(" → ")
+            means(speeds, |r| r.dry, true),
+            steps(speeds, |s| s.2, true),
+        );
+        let _ = writeln!(
+            md,
+            "- weather-{weather}, from the time-invariant zone to μ = 0.5, seed by seed: irrigation {} mm, dry-side violation {} ({:.2e} → {:.2e}).",
+            paired(&by_mu[..2], |s| s.1, false),
+            paired(&by_mu[..2], |s| s.2, true),
+            by_mu[0].dry.mean,
+            by_mu[1].dry.mean,
         );
     }
     written.push(write_file(&options.out.join("e7.md"), &md)?);

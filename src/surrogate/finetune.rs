@@ -128,6 +128,38 @@ pub fn validation_seed(seed: u64) -> u64 {
     seed.wrapping_add(1_000_003)
 }
 
+/// The training data of a refinement from the series of
+/// [`training_specs`] (in that order): every series pushed with the plan's
+/// window noise, each split into training and held-out samples. The
+/// daemon's jobs refine the two-layer network on it; `rootzone train`'s
+/// last stage refines both the two-layer network and the single LSTM on it.
+pub fn refinement_data(
+    plan: &FineTunePlan,
+    soil: &VanGenuchten,
+    seed: u64,
+    series: &[Series],
+) -> (SequenceData, Vec<usize>, Vec<usize>) {
+    let scaling = scaling_for(soil);
+    let mut data = SequenceData::new(plan.horizon);
+    let (mut tr, mut va) = (Vec::new(), Vec::new());
+    for (i, series) in series.iter().enumerate() {
+        let samples = data.push_series(&series.supply(), &series.measured, &series.et0, &scaling);
+        if let Some(level) = plan.window_noise {
+            noisier_windows(
+                &mut data,
+                series,
+                &scaling,
+                level,
+                seed.wrapping_add(41 + i as u64),
+            );
+        }
+        let (a, b) = holdout(&samples, plan.holdout);
+        tr.extend(a);
+        va.extend(b);
+    }
+    (data, tr, va)
+}
+
 /// Refines `base` for `soil` (named `soil_name` in the metadata) on data
 /// drawn from `seed`, caching the data in `cache_dir`; `stop` is asked
 /// between the stages and before every mini-batch. `base_name` describes
@@ -171,24 +203,11 @@ pub fn fine_tune(
         )?)
     };
     let specs = training_specs(plan, &soil, seed);
-    let mut data = SequenceData::new(plan.horizon);
-    let (mut tr, mut va) = (Vec::new(), Vec::new());
-    for (i, spec) in specs.iter().enumerate() {
-        let series = get(spec)?;
-        let samples = data.push_series(&series.supply(), &series.measured, &series.et0, &scaling);
-        if let Some(level) = plan.window_noise {
-            noisier_windows(
-                &mut data,
-                &series,
-                &scaling,
-                level,
-                seed.wrapping_add(41 + i as u64),
-            );
-        }
-        let (a, b) = holdout(&samples, plan.holdout);
-        tr.extend(a);
-        va.extend(b);
+    let mut series = Vec::new();
+    for spec in &specs {
+        series.push(get(spec)?);
     }
+    let (data, tr, va) = refinement_data(plan, &soil, seed, &series);
     let validation_spec =
         validation_spec_for(3, plan.validation_samples, validation_seed(seed), &soil);
     let validation = get(&validation_spec)?;
