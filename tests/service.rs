@@ -351,6 +351,27 @@ fn api_stores_controls_and_rejects_bad_input() {
     );
     assert_eq!(r.0, 200, "{}", r.2);
     assert_eq!(json_of(&r.2)["zone"]["mu"], 1.0);
+    // a key no field has, even as a no-op removal, and a key the actuator
+    // kind does not have: refused, the field unchanged (schemathesis found
+    // both answered 200)
+    problem(
+        curl(&d, "PATCH", &fp, Some(r#"{"": null}"#), Some(TOKEN)),
+        422,
+        "no such key",
+    );
+    problem(
+        curl(
+            &d,
+            "PATCH",
+            &fp,
+            Some(r#"{"actuator": {"url": ""}}"#),
+            Some(TOKEN),
+        ),
+        422,
+        "actuator.url",
+    );
+    let now = json_of(&curl(&d, "GET", &fp, None, None).2);
+    assert_eq!(now["zone"]["mu"], 1.0, "{now}");
     let metrics = curl(&d, "GET", "/metrics", None, None).2;
     assert!(
         metrics.contains("rootzone_measurements_ingested_total 14"),

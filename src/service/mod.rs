@@ -662,15 +662,31 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, 
             _ = cancel.cancelled() => return,
         }
     }
+    // the boundary this task last came to, to see one it slept through
+    let mut last: Option<DateTime<Utc>> = None;
     loop {
         let Ok(Some(field)) = state.engine.store.field(id) else {
             return;
         };
-        let next = clock::next_boundary(state.clock.now(), field.spec.control_period_s);
+        let period = field.spec.control_period_s;
+        // a cycle that outlasted a period (an overloaded machine, a slow
+        // database) left boundaries behind: run those no replica has run,
+        // oldest first, as a gained field does, before waiting for the next
+        if let Some(last) = last
+            && clock::boundary_at_or_before(state.clock.now(), period) > last
+            && state.holds(id)
+        {
+            tokio::select! {
+                _ = catch_up(&state, id) => {}
+                _ = cancel.cancelled() => return,
+            }
+        }
+        let next = clock::next_boundary(state.clock.now(), period);
         tokio::select! {
             _ = state.clock.sleep_until(next) => {}
             _ = cancel.cancelled() => return,
         }
+        last = Some(next);
         if field.spec.actuator != Actuator::Simulated {
             let wait =
                 TimeDelta::milliseconds((field.spec.effective_measurement_wait() * 1000.0) as i64);

@@ -221,16 +221,11 @@ pub fn fine_tune(
         seed,
         ..plan.config
     };
+    let (training, held_out) = Split::pair(&data, &tr, &va);
     let report = train_until(
         &mut joint,
-        Split {
-            data: &data,
-            samples: &tr,
-        },
-        Split {
-            data: &data,
-            samples: &va,
-        },
+        training,
+        held_out,
         &config,
         |e| {
             progress(ProgressEvent::Epoch {

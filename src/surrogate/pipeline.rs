@@ -485,17 +485,12 @@ pub fn run_training(
             plan.seed.wrapping_add(11 + i as u64),
         );
         let name = ["M1", "M2", "M3"][i];
+        let (training, validation) = Split::pair(&data, &tr, &va);
         let (report, seconds) = fit(
             name,
             &mut net,
-            Split {
-                data: &data,
-                samples: &tr,
-            },
-            Split {
-                data: &data,
-                samples: &va,
-            },
+            training,
+            validation,
             &plan.sub_model_config,
             &mut progress,
         )?;
@@ -522,14 +517,7 @@ pub fn run_training(
         &impulse,
         plan.seed.wrapping_add(44),
     ));
-    let whole_train = Split {
-        data: &data,
-        samples: &tr,
-    };
-    let whole_val = Split {
-        data: &data,
-        samples: &va,
-    };
+    let (whole_train, whole_val) = Split::pair(&data, &tr, &va);
     let mut single = SequenceNet::new(&plan.single_hidden, plan.seed.wrapping_add(21));
     let (report, seconds) = fit(
         "single LSTM",
@@ -606,17 +594,12 @@ pub fn run_training(
         joint_tr.extend(a);
         joint_va.extend(b);
     }
+    let (training, validation) = Split::pair(&joint_data, &joint_tr, &joint_va);
     let (report, seconds) = fit(
         "two-layer (joint)",
         &mut joint,
-        Split {
-            data: &joint_data,
-            samples: &joint_tr,
-        },
-        Split {
-            data: &joint_data,
-            samples: &joint_va,
-        },
+        training,
+        validation,
         &plan.joint_config,
         &mut progress,
     )?;
@@ -643,14 +626,7 @@ pub fn run_training(
             seed,
             ..refine.config
         };
-        let training = Split {
-            data: &data,
-            samples: &tr,
-        };
-        let validation = Split {
-            data: &data,
-            samples: &va,
-        };
+        let (training, validation) = Split::pair(&data, &tr, &va);
         let mut joint = JointTwoLayer::new(two_layer);
         let (report, seconds) = fit(
             "two-layer (refined)",

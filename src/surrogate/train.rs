@@ -481,6 +481,26 @@ impl<D> Clone for Split<'_, D> {
 
 impl<D> Copy for Split<'_, D> {}
 
+impl<'a, D> Split<'a, D> {
+    /// The training and the held-out split of one data set.
+    pub fn pair(
+        data: &'a D,
+        training: &'a [usize],
+        validation: &'a [usize],
+    ) -> (Split<'a, D>, Split<'a, D>) {
+        (
+            Split {
+                data,
+                samples: training,
+            },
+            Split {
+                data,
+                samples: validation,
+            },
+        )
+    }
+}
+
 /// Splits `samples` into (training, validation), the validation set being the
 /// last `fraction` of them (a contiguous block: no window overlaps across the
 /// split except at its edge).
