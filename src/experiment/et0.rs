@@ -8,8 +8,9 @@
 //! Conditions: the models' own soil, 2 % process and 2 % measurement noise,
 //! 20 % forecast error, the time-invariant zone, 60 steps from θ0 of MODEL.md
 //! §1, the seeds `--seed` … `--seed` + `--seeds` − 1: one season's I_T moves
-//! by several per cent with the seed (1.5 mm/day: +10.2 % on seed 5, +1.3 %
-//! on seed 7), so the controllers are compared on their means.
+//! by several per cent with the seed (the networks before the refinement
+//! stage, 1.5 mm/day: +6.2 %, +10.2 %, +1.3 % on seeds 3, 5, 7), so the
+//! controllers are compared on their means.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
