@@ -115,7 +115,8 @@ enum Command {
         plant: String,
         /// oracle (the Richards ZMPC given the plant's true soil and state),
         /// richards (the Richards ZMPC on the estimated state and soil),
-        /// two-layer or single-lstm (sandy loam only: the shipped models).
+        /// two-layer or single-lstm (sandy loam only: the shipped models,
+        /// reading the sensor through the ensemble filter around sandy loam).
         #[arg(long)]
         controller: String,
         /// The estimator's prior: a texture name or unknown (default: the

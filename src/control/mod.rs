@@ -14,7 +14,7 @@ pub use closed_loop::{
     ClosedLoopRun, ClosedLoopSettings, EstimateRecord, LoopController, ObservedRun, StepRecord,
     run_closed_loop, run_observed_loop,
 };
-pub use controller::{Controller, Decision};
+pub use controller::{Controller, Decision, reading_filter, relative_noise_sd};
 pub use estimated::EstimatedRichards;
 pub use model::{LinearModel, ModelError, PredictionModel, RichardsModel, SurrogateModel};
 pub use mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc, objective};
