@@ -365,4 +365,40 @@ mod tests {
             "filtered RMS error {filt} against raw {raw}"
         );
     }
+
+    /// A reading the filter cannot explain (θ jumping from 0.2 to 0.38 in
+    /// one dry step) makes it diverge: it is reset at that reading, and the
+    /// window takes the reading itself.
+    #[test]
+    fn a_filter_that_diverges_is_reset_and_the_reading_is_used() {
+        let first = 0.2;
+        let sd = relative_noise_sd(0.02, 0.2);
+        let filter = reading_filter(crate::soil::VanGenuchten::SANDY_LOAM, first, sd, 5).unwrap();
+        let mut c = Controller::surrogate(
+            MpcSettings::default(),
+            two_layer().predictor(),
+            2,
+            first,
+            7200.0,
+        )
+        .with_reading_filter(filter);
+        let dry = WeatherStep {
+            start_hour: 12.0,
+            et0_mm: 0.5,
+            precip_mm: 0.0,
+        };
+        let last = |c: &Controller| match &c.model {
+            Model::Surrogate { model, .. } => *model.past_y.last().unwrap(),
+            Model::Richards => unreachable!("a surrogate"),
+        };
+        c.observe(0.0, &dry, 0.199);
+        // an ordinary reading is filtered: not the reading itself
+        assert_ne!(last(&c), 0.199);
+        assert!((last(&c) - 0.199).abs() < 0.01, "{}", last(&c));
+        c.observe(0.0, &dry, 0.38);
+        assert_eq!(last(&c), 0.38);
+        // the reset filter starts at rest at that reading
+        let after = c.reading_filter().unwrap().sensor_theta(0).unwrap();
+        assert!((after - 0.38).abs() < 0.01, "{after}");
+    }
 }
