@@ -556,7 +556,7 @@ impl Estimator {
             .map(|j| {
                 let soil = self.member_soil(j);
                 let column = Column::new(soil, self.crop, self.settings.depth, n)?;
-                let mut integrator = Integrator::new(column, tolerances)?;
+                let mut integrator = Integrator::new(column, tolerances)?.continuing();
                 integrator.set_limits(limits);
                 let mut state = ColumnState {
                     heads: (0..n).map(|i| self.ensemble[(i, j)]).collect(),
