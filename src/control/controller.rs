@@ -134,13 +134,13 @@ impl Controller {
             self.last_measured = Some(measured);
         }
         let measured = match self.filter.as_deref_mut() {
-            Some(filter) if measured.is_finite() => filtered(
+            Some(filter) => filtered(
                 filter,
                 weather.forcing(irrigation, self.sampling_time),
                 self.sampling_time,
                 measured,
             ),
-            _ => measured,
+            None => measured,
         };
         if let Model::Surrogate {
             model,
@@ -244,10 +244,18 @@ pub fn reading_filter(
     )
 }
 
-/// The filter's mean θ at its first sensor after assimilating `reading`
-/// (the reading itself when the filter fails; a diverged one is reset).
+/// The filter's mean θ at its first sensor after forecasting the step and
+/// assimilating `reading` (the reading itself when the filter fails; a
+/// diverged one is reset). A step without a finite reading is forecast
+/// only, so the filter keeps pace with the field.
 fn filtered(filter: &mut Estimator, forcing: crate::soil::Forcing, dt: f64, reading: f64) -> f64 {
     let readings = [(0, reading)];
+    if !reading.is_finite() {
+        if filter.predict(forcing, dt).is_err() {
+            tracing::debug!("reading filter: the forecast of a step without a reading failed");
+        }
+        return reading;
+    }
     match filter
         .predict(forcing, dt)
         .and_then(|()| filter.update(&readings))
@@ -366,9 +374,10 @@ mod tests {
         );
     }
 
-    /// A reading the filter cannot explain (θ jumping from 0.2 to 0.38 in
-    /// one dry step) makes it diverge: it is reset at that reading, and the
-    /// window takes the reading itself.
+    /// A step without a reading is forecast (the filter keeps pace with the
+    /// field), and a reading the filter cannot explain (θ jumping from 0.2
+    /// to 0.38 in one dry step) makes it diverge: it is reset at that
+    /// reading, and the window takes the reading itself.
     #[test]
     fn a_filter_that_diverges_is_reset_and_the_reading_is_used() {
         let first = 0.2;
@@ -391,6 +400,10 @@ mod tests {
             Model::Surrogate { model, .. } => *model.past_y.last().unwrap(),
             Model::Richards => unreachable!("a surrogate"),
         };
+        let start = c.reading_filter().unwrap().time();
+        // a step without a reading is forecast: the filter keeps pace
+        c.observe(0.0, &dry, f64::NAN);
+        assert_eq!(c.reading_filter().unwrap().time(), start + 7200.0);
         c.observe(0.0, &dry, 0.199);
         // an ordinary reading is filtered: not the reading itself
         assert_ne!(last(&c), 0.199);
