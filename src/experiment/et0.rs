@@ -128,29 +128,29 @@ fn run_one(
         ..ClosedLoopSettings::default()
     };
     let dt = settings.field.sampling_time;
-    let make = |first: f64| match runner {
-        Runner::Oracle => Ok(Controller::oracle(mpc, dt)),
+    // the reading filter around the networks' own soil, told the sensor's
+    // noise at the middle of the zone
+    let sd = relative_noise_sd(
+        settings.field.measurement_noise,
+        0.5 * (mpc.zone.y_low + mpc.zone.y_up),
+    );
+    let mut failure = None;
+    let mut make = |first: f64| match runner {
+        Runner::Oracle => Controller::oracle(mpc, dt),
         Runner::TwoLayer | Runner::TwoLayerHeld => {
-            let controller =
-                Controller::surrogate(mpc, models.two_layer.predictor(), BIAS_PERIOD, first, dt);
-            // the reading filter around the networks' own soil, told the
-            // sensor's noise
-            let sd = relative_noise_sd(settings.field.measurement_noise, 0.5 * (0.18 + 0.23));
             match reading_filter(models.field.soil, first, sd, seed.wrapping_add(2000)) {
-                Ok(filter) => Ok(controller.with_reading_filter(filter)),
-                Err(e) => Err(e),
+                Ok(filter) => {
+                    Controller::surrogate(mpc, models.two_layer.predictor(), BIAS_PERIOD, first, dt)
+                        .with_reading_filter(filter)
+                }
+                Err(e) => {
+                    failure = Some(e);
+                    Controller::oracle(mpc, dt)
+                }
             }
         }
     };
-    let mut failure = None;
-    let mut factory = |first: f64| match make(first) {
-        Ok(c) => c,
-        Err(e) => {
-            failure = Some(e);
-            Controller::oracle(mpc, dt)
-        }
-    };
-    let run = run_closed_loop(&settings, weather, &mut factory)
+    let run = run_closed_loop(&settings, weather, &mut make)
         .map_err(|e| ExperimentError::Input(format!("closed loop: {e}")));
     match failure {
         Some(e) => Err(ExperimentError::Input(format!("reading filter: {e}"))),
