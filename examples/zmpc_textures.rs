@@ -9,7 +9,10 @@
 //! driest column there is (water only adds), so where that distance exceeds
 //! a bound, no controller that enters the zone keeps within it.
 //!
-//! `cargo run --release --example zmpc_textures [TEXTURE…]`
+//! `cargo run --release --example zmpc_textures [--work-budget=N|none] [TEXTURE…]`
+//!
+//! The solves' model work (Newton iterations per solve, their cost, and
+//! how many solves the work and the time budget ended) goes to stderr.
 
 use std::time::Instant;
 
@@ -52,6 +55,18 @@ impl PredictionModel for Counted {
     fn set_interrupt(&mut self, interrupt: Option<Interrupt>) {
         self.inner.set_interrupt(interrupt);
     }
+
+    fn set_work_budget(&mut self, budget: Option<usize>) {
+        self.inner.set_work_budget(budget);
+    }
+
+    fn work_spent(&self) -> usize {
+        self.inner.work_spent()
+    }
+
+    fn out_of_work(&self) -> bool {
+        self.inner.out_of_work()
+    }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -65,7 +80,20 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() {
-    let only: Vec<String> = std::env::args().skip(1).collect();
+    let mut only: Vec<String> = std::env::args().skip(1).collect();
+    // --work-budget=N (Newton iterations per solve) or --work-budget=none
+    let work_budget = only
+        .iter()
+        .position(|a| a.starts_with("--work-budget="))
+        .map(|i| {
+            let value = only.remove(i)["--work-budget=".len()..].to_string();
+            (value != "none").then(|| {
+                value.parse::<usize>().unwrap_or_else(|_| {
+                    eprintln!("--work-budget takes a count or none, not {value}");
+                    std::process::exit(2)
+                })
+            })
+        });
     let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").expect("embedded weather");
     let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").expect("embedded weather");
     println!(
@@ -90,6 +118,7 @@ fn main() {
                 zone,
                 theta_r: soil.residual_water_content,
                 theta_s: soil.saturated_water_content,
+                work_budget: work_budget.unwrap_or(MpcSettings::default().work_budget),
                 ..MpcSettings::default()
             };
             let (low, up) = zone.bounds(0, settings.horizon);
@@ -100,6 +129,7 @@ fn main() {
             let (mut entered, mut dry_excess, mut wet_excess) = (false, 0.0f64, 0.0f64);
             let mut stopped = false;
             let mut fallbacks = 0;
+            let (mut work, mut budget_cut, mut time_cut) = (Vec::new(), 0, 0);
             for step in 0..60 {
                 let forecast = weather.forecast(step, settings.horizon, 0.0, &mut rand_free());
                 let mut model = Counted {
@@ -112,6 +142,9 @@ fn main() {
                 let started = Instant::now();
                 let solution = mpc.solve(&mut model);
                 times.push(started.elapsed().as_secs_f64() * 1e3);
+                work.push(model.work_spent() as f64);
+                budget_cut += usize::from(solution.status == SolveStatus::WorkBudget);
+                time_cut += usize::from(solution.status == SolveStatus::TimeBudget);
                 predictions += model.predictions;
                 jacobians += model.jacobians;
                 prediction_ms += model.prediction_time;
@@ -161,6 +194,14 @@ fn main() {
                 jacobian_ms / jacobians.max(1) as f64,
                 iterations as f64 / n,
                 unirrigated_wet_excess(soil, weather, low, up),
+            );
+            let total_work: f64 = work.iter().sum();
+            eprintln!(
+                "{texture} {name}: Newton iterations per solve median {:.0}, max {:.0}; \
+                 {:.3} ms per 1000; work-budget stops {budget_cut}, time-budget stops {time_cut}",
+                median(work.clone()),
+                work.iter().copied().fold(0.0, f64::max),
+                times.iter().sum::<f64>() / total_work.max(1.0) * 1e3,
             );
         }
     }

@@ -400,6 +400,8 @@ fn the_time_budget_binds_richards_solves_on_every_texture() {
             theta_r: soil.residual_water_content,
             theta_s: soil.saturated_water_content,
             time_budget: budget,
+            // the safety net alone: no count ends the solve first
+            work_budget: None,
             ..MpcSettings::default()
         };
         let mut model = RichardsModel::new(&field, &weather.steps()[..20]);
@@ -427,6 +429,104 @@ fn the_time_budget_binds_richards_solves_on_every_texture() {
             );
         }
     }
+}
+
+/// A Richards model whose every evaluation is made slow, as on a loaded
+/// machine.
+struct Slowed(rootzone::control::RichardsModel, std::time::Duration);
+
+impl PredictionModel for Slowed {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        std::thread::sleep(self.1);
+        self.0.predict(plan, out)
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        std::thread::sleep(self.1);
+        self.0.predict_with_jacobian(plan, out, jac)
+    }
+
+    fn set_interrupt(&mut self, interrupt: Option<rootzone::soil::Interrupt>) {
+        self.0.set_interrupt(interrupt);
+    }
+
+    fn set_work_budget(&mut self, budget: Option<usize>) {
+        self.0.set_work_budget(budget);
+    }
+
+    fn work_spent(&self) -> usize {
+        self.0.work_spent()
+    }
+
+    fn out_of_work(&self) -> bool {
+        self.0.out_of_work()
+    }
+}
+
+/// A solve that its work budget ends (a count of Newton iterations, not
+/// the wall clock) says so, spends about its budget, and gives the same
+/// plan when every evaluation is made 20 ms slower: the plan does not
+/// depend on the machine's speed. Without a budget the same solve spends
+/// more and differs.
+#[test]
+fn the_work_budget_ends_a_richards_solve_the_same_at_any_speed() {
+    use rootzone::control::RichardsModel;
+    use rootzone::soil::{Field, FieldSettings, Texture};
+    use rootzone::weather::{RAIN_SCENARIO, WeatherSeries};
+    use std::time::Duration;
+    let weather = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").unwrap();
+    let soil = Texture::Loam.parameters();
+    let field = Field::new(FieldSettings {
+        soil,
+        ..FieldSettings::default()
+    })
+    .unwrap();
+    let budget = 1_500;
+    let settings = MpcSettings {
+        zone: ZoneSettings::default_for(&soil),
+        theta_r: soil.residual_water_content,
+        theta_s: soil.saturated_water_content,
+        time_budget: Duration::from_secs(3600),
+        work_budget: Some(budget),
+        ..MpcSettings::default()
+    };
+    let forecast = &weather.steps()[15..35];
+    let mut model = RichardsModel::new(&field, forecast);
+    let fast = ZoneMpc::new(settings).solve(&mut model);
+    assert_eq!(fast.status, SolveStatus::WorkBudget, "{fast:?}");
+    // the last evaluation may overrun by at most one step attempt's Newton
+    // iterations (4 stages, a few each)
+    let spent = model.work_spent();
+    assert!(
+        (budget..budget + 200).contains(&spent),
+        "{spent} Newton iterations against a budget of {budget}"
+    );
+    assert!(!fast.predicted.is_empty());
+    assert!(fast.plan.iter().all(|u| (0.0..=1e-5).contains(u)));
+    let mut slowed = Slowed(
+        RichardsModel::new(&field, forecast),
+        Duration::from_millis(20),
+    );
+    let slow = ZoneMpc::new(settings).solve(&mut slowed);
+    assert_eq!(slow.status, SolveStatus::WorkBudget);
+    assert_eq!(slow.plan, fast.plan);
+    assert_eq!(slow.predicted, fast.predicted);
+    assert_eq!(slow.iterations, fast.iterations);
+    assert!(slow.solve_time > fast.solve_time);
+    // the budget is what ended it
+    let mut model = RichardsModel::new(&field, forecast);
+    let free = ZoneMpc::new(MpcSettings {
+        work_budget: None,
+        ..settings
+    })
+    .solve(&mut model);
+    assert_ne!(free.status, SolveStatus::WorkBudget);
+    assert!(model.work_spent() > budget, "{}", model.work_spent());
 }
 
 /// A set cancel flag ends a solve as its budget would.

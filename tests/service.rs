@@ -557,12 +557,21 @@ fn a_field_that_cannot_finish_blocks_neither_others_nor_shutdown() {
     let setpoint = json_of(&r.2);
     let status = setpoint["status"].as_str().unwrap();
     assert!(
-        ["time-budget", "fallback", "converged", "iteration-cap"].contains(&status),
+        [
+            "work-budget",
+            "time-budget",
+            "fallback",
+            "converged",
+            "iteration-cap"
+        ]
+        .contains(&status),
         "{setpoint}"
     );
-    // the solve ran into its 1-s budget, no further than one sampling step
+    // the solve ran into its work budget (60,000 Newton iterations) or, on
+    // a machine too loaded for that, its 2-s time budget, no further than
+    // one sampling step
     let solve_ms = setpoint["solve_ms"].as_f64().unwrap();
-    assert!(solve_ms > 100.0 && solve_ms < 2_000.0, "{setpoint}");
+    assert!(solve_ms > 100.0 && solve_ms < 3_000.0, "{setpoint}");
     if status == "fallback" {
         assert!(setpoint["fallback_reason"].as_str().is_some(), "{setpoint}");
     }

@@ -213,6 +213,50 @@ fn an_interrupt_stops_the_integration_at_once() {
     field.step(Forcing::default()).unwrap();
 }
 
+/// A cap on the Newton iterations over many calls (a caller's budget)
+/// stops the integration that reaches it, leaving the state alone, and
+/// counts across calls: after a first sampling step, a cap of what it spent
+/// plus 10 stops the next one within a step attempt of it.
+#[test]
+fn a_newton_cap_over_many_calls_stops_the_one_that_reaches_it() {
+    let field = Field::new(FieldSettings::default()).unwrap();
+    let mut integrator = field.integrator().clone();
+    let mut state = field.state().clone();
+    let wet = Forcing {
+        irrigation: 5e-6,
+        ..Forcing::default()
+    };
+    integrator
+        .advance(&mut state, 0.0, STEP_SECONDS, wet)
+        .unwrap();
+    let spent = integrator.statistics().newton_iterations;
+    assert!(spent > 10, "{spent}");
+    integrator.set_newton_cap(Some(spent + 10));
+    let before = state.clone();
+    let e = integrator
+        .advance(&mut state, STEP_SECONDS, STEP_SECONDS, wet)
+        .unwrap_err();
+    let FailureKind::WorkLimit(what) = &e.kind else {
+        panic!("{e}")
+    };
+    assert!(what.contains("budget"), "{what}");
+    assert_eq!(
+        state, before,
+        "a stopped integration leaves the state alone"
+    );
+    let after = integrator.statistics().newton_iterations;
+    assert!(
+        (spent + 10..spent + 10 + 100).contains(&after),
+        "{after} Newton iterations against a cap of {}",
+        spent + 10
+    );
+    // lifted, the same step runs
+    integrator.set_newton_cap(None);
+    integrator
+        .advance(&mut state, STEP_SECONDS, STEP_SECONDS, wet)
+        .unwrap();
+}
+
 #[test]
 fn ill_posed_soils_are_refused_naming_the_parameter() {
     let base = Texture::Loam.parameters();

@@ -29,6 +29,25 @@ pub trait PredictionModel: Send {
     /// evaluation is abandoned with an error (the zone MPC's time budget, a
     /// shutdown). Models whose evaluation is short and bounded ignore it.
     fn set_interrupt(&mut self, _interrupt: Option<Interrupt>) {}
+
+    /// Starts a budget of work, counted in the model's own unit, for the
+    /// evaluations that follow (the zone MPC's solve), with nothing spent;
+    /// None removes the bound (what was spent stays readable). An
+    /// evaluation that would exceed what is left is abandoned with an
+    /// error. Models whose every evaluation costs the same bounded work
+    /// (the surrogates) have none.
+    fn set_work_budget(&mut self, _budget: Option<usize>) {}
+
+    /// The work spent since a budget was last started (0 for models
+    /// without one).
+    fn work_spent(&self) -> usize {
+        0
+    }
+
+    /// Whether a budget is set and spent: the next evaluation would fail.
+    fn out_of_work(&self) -> bool {
+        false
+    }
 }
 
 /// A surrogate ([`Predictor`]) with its window of applied inputs and measured
@@ -263,6 +282,10 @@ pub struct RichardsModel {
     /// ET0 and P of every horizon step (irrigation 0) [m/s].
     forecast: Vec<Forcing>,
     sampling_time: f64,
+    /// The solve's budget of Newton iterations over all its evaluations
+    /// ([`PredictionModel::set_work_budget`]), and what they have spent.
+    work_budget: Option<usize>,
+    work_spent: usize,
 }
 
 impl RichardsModel {
@@ -283,6 +306,8 @@ impl RichardsModel {
                 .map(|w| w.forcing(0.0, sampling_time))
                 .collect(),
             sampling_time,
+            work_budget: None,
+            work_spent: 0,
         }
     }
 
@@ -314,6 +339,8 @@ impl RichardsModel {
                 .map(|w| w.forcing(0.0, sampling_time))
                 .collect(),
             sampling_time,
+            work_budget: None,
+            work_spent: 0,
         })
     }
 
@@ -329,14 +356,37 @@ impl RichardsModel {
         })
     }
 
+    /// One evaluation, its Newton iterations booked against the budget.
     fn run(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: Option<&mut [f64]>,
+    ) -> Result<(), ModelError> {
+        let mut integrator = self.integrator.clone();
+        let before = integrator.statistics().newton_iterations;
+        if let Some(budget) = self.work_budget {
+            let left = budget.saturating_sub(self.work_spent);
+            if left == 0 {
+                return Err(ModelError(format!(
+                    "Richards model: the solve's work budget of {budget} Newton iterations is spent"
+                )));
+            }
+            integrator.set_newton_cap(Some(before + left));
+        }
+        let result = self.run_on(&mut integrator, plan, out, jac);
+        self.work_spent += integrator.statistics().newton_iterations - before;
+        result
+    }
+
+    fn run_on(
         &self,
+        integrator: &mut Integrator,
         plan: &[f64],
         out: &mut [f64],
         mut jac: Option<&mut [f64]>,
     ) -> Result<(), ModelError> {
         let n = plan.len();
-        let mut integrator = self.integrator.clone();
         let mut state = self.state.clone();
         let soil = *integrator.column().soil();
         let sensor = integrator.column().sensor_cell();
@@ -395,5 +445,22 @@ impl PredictionModel for RichardsModel {
 
     fn set_interrupt(&mut self, interrupt: Option<Interrupt>) {
         self.integrator.set_interrupt(interrupt);
+    }
+
+    /// Counted in Newton iterations (each one tridiagonal solve), the
+    /// integrator's unit of work.
+    fn set_work_budget(&mut self, budget: Option<usize>) {
+        self.work_budget = budget;
+        if budget.is_some() {
+            self.work_spent = 0;
+        }
+    }
+
+    fn work_spent(&self) -> usize {
+        self.work_spent
+    }
+
+    fn out_of_work(&self) -> bool {
+        self.work_budget.is_some_and(|b| self.work_spent >= b)
     }
 }

@@ -24,7 +24,8 @@
 //! The iteration stops when a step changes no input by more than
 //! `step_tolerance`, the predicted decrease is negligible, or three accepted
 //! steps in a row each gain less than that tolerance (converged), at
-//! the iteration cap, or at the time budget, and always returns the best plan evaluated.
+//! the iteration cap, when the model's work budget is spent, or at the time
+//! budget, and always returns the best plan evaluated.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -73,6 +74,12 @@ pub struct MpcSettings {
     /// the iteration has converged.
     pub objective_tolerance: f64,
     pub time_budget: Duration,
+    /// The model work one solve may spend over all its evaluations, in the
+    /// model's unit ([`PredictionModel::set_work_budget`]: Newton
+    /// iterations for the Richards model; the surrogates have none). The
+    /// ordinary limit of a dear solve: a count, so the plan does not depend
+    /// on the machine's load; `time_budget` is the safety net behind it.
+    pub work_budget: Option<usize>,
     /// The rate [m/s] below which the trust region turns from logarithmic to
     /// linear (see [`TrustMetric`]) in cold runs; a knee as large as u_max
     /// makes it nearly linear, which explores widely.
@@ -83,6 +90,16 @@ pub struct MpcSettings {
     /// promising constant plans (see [`ZoneMpc::solve`]).
     pub starts: usize,
 }
+
+/// The default [`MpcSettings::work_budget`]: 60,000 Newton iterations of
+/// the Richards model, at most 0.75 s of a solve (clay in rain, idle
+/// machine, `examples/zmpc_textures.rs`), where solves that ran until the
+/// old 1-s time budget made up to 176,000. Nine of the twelve textures'
+/// solves make at most 47,000 and never reach it (sandy loam and loam at
+/// most 14,000). The time budget behind it (2 s) leaves a machine more
+/// than 2.5 times slower than an idle one before the wall clock decides
+/// anything.
+pub const WORK_BUDGET: usize = 60_000;
 
 impl Default for MpcSettings {
     fn default() -> Self {
@@ -98,7 +115,8 @@ impl Default for MpcSettings {
             max_iterations: 50,
             step_tolerance: 1e-6,
             objective_tolerance: 1e-5,
-            time_budget: Duration::from_secs(1),
+            time_budget: Duration::from_secs(2),
+            work_budget: Some(WORK_BUDGET),
             starts: 4,
             trust_region_knee: 1.0,
             warm_trust_region_knee: crate::surrogate::scaling::DEFAULT_U0,
@@ -111,6 +129,9 @@ impl Default for MpcSettings {
 pub enum SolveStatus {
     Converged,
     IterationCap,
+    /// The model's work budget ([`MpcSettings::work_budget`]) was spent:
+    /// the best plan evaluated.
+    WorkBudget,
     TimeBudget,
     /// The model or the QP failed: the plan is the previous one shifted (or
     /// zero irrigation), for the reason given.
@@ -375,10 +396,12 @@ impl ZoneMpc {
             Instant::now() > deadline || cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed))
         });
         model.set_interrupt(Some(stop.clone()));
+        model.set_work_budget(self.settings.work_budget);
         self.stop = Some(stop);
         let solution = self.solve_within(model, start);
         self.stop = None;
         model.set_interrupt(None);
+        model.set_work_budget(None);
         solution
     }
 
@@ -414,7 +437,7 @@ impl ZoneMpc {
                 .then(|| objective(&s, &y, plan))
         });
         for (j0, other) in candidates {
-            if self.out_of_time() {
+            if self.out_of_time() || model.out_of_work() {
                 break;
             }
             // a converged warm run is beaten only from a start that is
@@ -434,8 +457,12 @@ impl ZoneMpc {
         }
         // a solve the budget cut short says so, even when its first run had
         // converged: the starts it did not try could have beaten that run
-        if self.out_of_time() && !matches!(best.status, SolveStatus::Fallback(_)) {
-            best.status = SolveStatus::TimeBudget;
+        if !matches!(best.status, SolveStatus::Fallback(_)) {
+            if self.out_of_time() {
+                best.status = SolveStatus::TimeBudget;
+            } else if model.out_of_work() {
+                best.status = SolveStatus::WorkBudget;
+            }
         }
         best.solve_time = start.elapsed();
         self.previous = Some(best.plan.clone());
@@ -490,6 +517,10 @@ impl ZoneMpc {
         while iterations < s.max_iterations {
             if self.out_of_time() {
                 status = SolveStatus::TimeBudget;
+                break;
+            }
+            if model.out_of_work() {
+                status = SolveStatus::WorkBudget;
                 break;
             }
             iterations += 1;
@@ -552,6 +583,8 @@ impl ZoneMpc {
                     j = trial;
                     status = if self.out_of_time() {
                         SolveStatus::TimeBudget
+                    } else if model.out_of_work() {
+                        SolveStatus::WorkBudget
                     } else {
                         SolveStatus::Fallback("model failed at an accepted plan".into())
                     };

@@ -293,6 +293,7 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     let (status, reason) = match &solution.status {
         SolveStatus::Converged => ("converged", None),
         SolveStatus::IterationCap => ("iteration-cap", None),
+        SolveStatus::WorkBudget => ("work-budget", None),
         SolveStatus::TimeBudget => ("time-budget", None),
         SolveStatus::Fallback(why) => ("fallback", Some(why.clone())),
     };

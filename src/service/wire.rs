@@ -1081,7 +1081,7 @@ pub struct Setpoint {
     /// (low, up) of each horizon step.
     pub zone: Vec<[f64; 2]>,
     pub model: ModelKind,
-    /// converged | iteration-cap | time-budget | fallback.
+    /// converged | iteration-cap | work-budget | time-budget | fallback.
     pub status: String,
     /// Why the solver fell back, if it did.
     #[serde(default, skip_serializing_if = "Option::is_none")]

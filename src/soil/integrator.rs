@@ -296,6 +296,9 @@ pub struct Integrator {
     /// Forcing of the last call.
     last_forcing: Option<Forcing>,
     limits: WorkLimits,
+    /// A bound on [`IntegratorStatistics::newton_iterations`] over every
+    /// call (a caller's budget across many integrations).
+    newton_cap: Option<usize>,
     interrupt: Option<Interrupt>,
     work: Workspace,
 }
@@ -414,6 +417,7 @@ impl Integrator {
             next_step: FIRST_STEP,
             last_forcing: None,
             limits: WorkLimits::default(),
+            newton_cap: None,
             interrupt: None,
             work: Workspace::new(column.cells()),
         })
@@ -447,6 +451,15 @@ impl Integrator {
     /// Replaces the bounds on the work of a sampling step.
     pub fn set_limits(&mut self, limits: WorkLimits) {
         self.limits = limits;
+    }
+
+    /// Bounds the Newton iterations counted in [`Integrator::statistics`]
+    /// (over all calls, not per sampling step): once they reach `cap`, the
+    /// next step attempt fails with [`FailureKind::WorkLimit`]. A caller
+    /// spreading one budget over many integrations sets it to the count so
+    /// far plus what is left. None removes the bound.
+    pub fn set_newton_cap(&mut self, cap: Option<usize>) {
+        self.newton_cap = cap;
     }
 
     /// Installs (or removes) the check made before every step attempt.
@@ -535,6 +548,19 @@ impl Integrator {
                     "{attempts} step attempts and {newton} Newton iterations in one sampling step \
                      (limits {} and {})",
                     self.limits.step_attempts, self.limits.newton_iterations
+                );
+                return Err(stop(
+                    FailureKind::WorkLimit(what),
+                    smallest,
+                    self.work.worst_cell,
+                ));
+            }
+            if let Some(cap) = self.newton_cap
+                && self.statistics.newton_iterations >= cap
+            {
+                let what = format!(
+                    "the caller's budget of Newton iterations is spent ({} of at most {cap})",
+                    self.statistics.newton_iterations
                 );
                 return Err(stop(
                     FailureKind::WorkLimit(what),
