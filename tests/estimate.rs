@@ -435,7 +435,8 @@ fn estimates_stay_within_physical_bounds() {
 }
 
 /// The "unknown" prior on a sand: the selection drops the textures whose
-/// log-likelihood falls 10 behind the leader's, with their members.
+/// log-likelihood falls `selection_prune` behind the leader's, with their
+/// members.
 #[test]
 fn the_selection_drops_textures_far_behind_the_leader() {
     let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();

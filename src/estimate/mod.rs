@@ -175,7 +175,7 @@ impl Default for EstimatorSettings {
             selection_updates: 12,
             members_per_texture: 8,
             analysis_variable: AnalysisVariable::WaterContent,
-            selection_prune: Some(10.0),
+            selection_prune: Some(6.0),
         }
     }
 }
