@@ -484,6 +484,56 @@ fn the_selection_drops_textures_far_behind_the_leader() {
     assert!(dropped, "no texture was dropped in 8 updates on a sand");
 }
 
+/// While the "unknown" prior selects the texture, a member whose forecast
+/// fails is replaced from its own texture, and a texture none of whose
+/// members can be integrated leaves the selection: no member ever carries
+/// another texture's parameters under its group's name. Under work limits
+/// too short for the fine textures' ponded columns (u_max on a field at
+/// rest at θ 0.3), some members fail.
+#[test]
+fn a_failed_member_is_replaced_from_its_own_texture_while_selecting() {
+    use rootzone::estimate::prior::TEXTURE_SD;
+    let mut e = Estimator::new(
+        Prior::Unknown,
+        Crop::default(),
+        vec![sensor("root", 0.125)],
+        InitialGuess::Reading(0.3),
+        EstimatorSettings {
+            seed: 3,
+            newton_iterations: NEWTON_LIMIT,
+            ..EstimatorSettings::default()
+        },
+    )
+    .unwrap();
+    let start = e.ensemble().ncols();
+    let wet = Forcing {
+        irrigation: 1e-5,
+        ..Forcing::default()
+    };
+    for _ in 0..2 {
+        e.predict(wet, DT).unwrap();
+        let Some(sel) = e.selection() else { break };
+        let rows = e.ensemble().nrows();
+        for (j, &g) in sel.groups.iter().enumerate() {
+            // ln Ks of member j against its texture's
+            let texture = Texture::ALL[g % Texture::ALL.len()].parameters();
+            let ln_ks = e.ensemble()[(rows - 5, j)];
+            assert!(
+                (ln_ks - texture.saturated_conductivity.ln()).abs() < 5.0 * TEXTURE_SD[0],
+                "member {j} of group {g} has ln Ks {ln_ks}"
+            );
+        }
+    }
+    let failed = e.statistics().replaced_members > 0 || e.ensemble().ncols() < start;
+    assert!(
+        failed,
+        "no member failed under {NEWTON_LIMIT} Newton iterations"
+    );
+}
+
+/// Newton iterations per member forecast in the test above.
+const NEWTON_LIMIT: usize = 150;
+
 /// While the "unknown" prior selects the texture, a field read above its
 /// zone is not irrigated (the sound start). On a silt read at 0.4645, above
 /// its zone's 0.429, the mixture's mean soil (θs below the zone) made the

@@ -7,7 +7,9 @@
 //!   advanced by the soil module's [`Integrator`] under the applied irrigation
 //!   and the observed weather, within [`WorkLimits`]. A member whose
 //!   integration fails is replaced by a copy of a randomly chosen member that
-//!   succeeded (counted in [`Statistics::replaced_members`]). Model error
+//!   succeeded (counted in [`Statistics::replaced_members`]); while the
+//!   "unknown" prior selects its texture, one of the same texture, and a
+//!   texture none of whose members succeeded leaves the selection. Model error
 //!   enters as MODEL.md §2's process noise: every head is multiplied by
 //!   `1 + σ_p·N(0, 1)` after each step (σ_p = 0.02/√3, the standard deviation
 //!   of the plant's 2 % uniform noise, scaled by √(duration / 2 h)).
@@ -585,9 +587,36 @@ impl Estimator {
                 "every member's integration failed".into(),
             ));
         }
+        // while the "unknown" prior selects, a member is replaced from its
+        // own texture (a copy of another texture's member would score that
+        // texture's model under this one's name); a texture none of whose
+        // members could be integrated leaves the selection
+        if let Some(selection) = self.selection.as_mut() {
+            let keep: Vec<usize> = (0..members)
+                .filter(|&j| {
+                    good.iter()
+                        .any(|&i| selection.groups[i] == selection.groups[j])
+                })
+                .collect();
+            if keep.len() < members {
+                self.ensemble = self.ensemble.select_columns(keep.iter());
+                selection.groups = keep.iter().map(|&j| selection.groups[j]).collect();
+                ok = keep.iter().map(|&j| ok[j]).collect();
+            }
+        }
+        let members = self.ensemble.ncols();
+        let good: Vec<usize> = (0..members).filter(|&j| ok[j]).collect();
         for j in 0..members {
             if !ok[j] {
-                let from = good[self.rng.random_range(0..good.len())];
+                let pool: Vec<usize> = match &self.selection {
+                    Some(selection) => good
+                        .iter()
+                        .copied()
+                        .filter(|&i| selection.groups[i] == selection.groups[j])
+                        .collect(),
+                    None => good.clone(),
+                };
+                let from = pool[self.rng.random_range(0..pool.len())];
                 let column = self.ensemble.column(from).clone_owned();
                 self.ensemble.set_column(j, &column);
                 self.statistics.replaced_members += 1;
