@@ -335,6 +335,18 @@ impl ZoneMpc {
         self.stop.as_ref().is_some_and(Interrupt::requested)
     }
 
+    /// Which of the solve's budgets is spent, if any: its time budget (or
+    /// the cancel flag) first, then `model`'s work budget.
+    fn spent_budget(&self, model: &dyn PredictionModel) -> Option<SolveStatus> {
+        if self.out_of_time() {
+            Some(SolveStatus::TimeBudget)
+        } else if model.out_of_work() {
+            Some(SolveStatus::WorkBudget)
+        } else {
+            None
+        }
+    }
+
     /// The previous plan shifted by one step (last entry repeated), scaled
     /// and clamped to [0, 1]; zero irrigation without one.
     fn warm_start(&self) -> Vec<f64> {
@@ -437,7 +449,7 @@ impl ZoneMpc {
                 .then(|| objective(&s, &y, plan))
         });
         for (j0, other) in candidates {
-            if self.out_of_time() || model.out_of_work() {
+            if self.spent_budget(model).is_some() {
                 break;
             }
             // a converged warm run is beaten only from a start that is
@@ -457,12 +469,10 @@ impl ZoneMpc {
         }
         // a solve the budget cut short says so, even when its first run had
         // converged: the starts it did not try could have beaten that run
-        if !matches!(best.status, SolveStatus::Fallback(_)) {
-            if self.out_of_time() {
-                best.status = SolveStatus::TimeBudget;
-            } else if model.out_of_work() {
-                best.status = SolveStatus::WorkBudget;
-            }
+        if !matches!(best.status, SolveStatus::Fallback(_))
+            && let Some(spent) = self.spent_budget(model)
+        {
+            best.status = spent;
         }
         best.solve_time = start.elapsed();
         self.previous = Some(best.plan.clone());
@@ -515,12 +525,8 @@ impl ZoneMpc {
         let mut stalled = 0;
         let mut rejected = false;
         while iterations < s.max_iterations {
-            if self.out_of_time() {
-                status = SolveStatus::TimeBudget;
-                break;
-            }
-            if model.out_of_work() {
-                status = SolveStatus::WorkBudget;
+            if let Some(spent) = self.spent_budget(model) {
+                status = spent;
                 break;
             }
             iterations += 1;
@@ -581,13 +587,9 @@ impl ZoneMpc {
                     // with that prediction
                     y.copy_from_slice(&trial_y);
                     j = trial;
-                    status = if self.out_of_time() {
-                        SolveStatus::TimeBudget
-                    } else if model.out_of_work() {
-                        SolveStatus::WorkBudget
-                    } else {
+                    status = self.spent_budget(model).unwrap_or_else(|| {
                         SolveStatus::Fallback("model failed at an accepted plan".into())
-                    };
+                    });
                     break;
                 }
                 j = trial;

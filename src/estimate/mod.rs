@@ -382,6 +382,13 @@ impl Selection {
             .unwrap_or(0)
     }
 
+    /// Keeps only the members `keep` (indices into `ensemble`'s columns,
+    /// rising), in the ensemble and in the groups.
+    fn retain(&mut self, ensemble: &mut DMatrix<f64>, keep: &[usize]) {
+        *ensemble = ensemble.select_columns(keep.iter());
+        self.groups = keep.iter().map(|&j| self.groups[j]).collect();
+    }
+
     /// Whether one texture group is left.
     fn single(&self) -> bool {
         self.groups.windows(2).all(|w| w[0] == w[1])
@@ -599,8 +606,7 @@ impl Estimator {
                 })
                 .collect();
             if keep.len() < members {
-                self.ensemble = self.ensemble.select_columns(keep.iter());
-                selection.groups = keep.iter().map(|&j| selection.groups[j]).collect();
+                selection.retain(&mut self.ensemble, &keep);
                 ok = keep.iter().map(|&j| ok[j]).collect();
             }
         }
@@ -828,8 +834,7 @@ impl Estimator {
                         .filter(|&j| selection.log_likelihood[selection.groups[j]] >= best - gap)
                         .collect();
                     if keep.len() < members {
-                        self.ensemble = self.ensemble.select_columns(keep.iter());
-                        selection.groups = keep.iter().map(|&j| selection.groups[j]).collect();
+                        selection.retain(&mut self.ensemble, &keep);
                     }
                 }
                 // the innovation statistics of the whole mixture

@@ -542,26 +542,24 @@ impl Integrator {
             if self.interrupt.as_ref().is_some_and(Interrupt::requested) {
                 return Err(stop(FailureKind::Interrupted, smallest, None));
             }
-            let newton = self.statistics.newton_iterations - newton_at_start;
-            if attempts >= self.limits.step_attempts || newton >= self.limits.newton_iterations {
-                let what = format!(
+            let total = self.statistics.newton_iterations;
+            let newton = total - newton_at_start;
+            let over = if attempts >= self.limits.step_attempts
+                || newton >= self.limits.newton_iterations
+            {
+                Some(format!(
                     "{attempts} step attempts and {newton} Newton iterations in one sampling step \
                      (limits {} and {})",
                     self.limits.step_attempts, self.limits.newton_iterations
-                );
-                return Err(stop(
-                    FailureKind::WorkLimit(what),
-                    smallest,
-                    self.work.worst_cell,
-                ));
-            }
-            if let Some(cap) = self.newton_cap
-                && self.statistics.newton_iterations >= cap
-            {
-                let what = format!(
-                    "the caller's budget of Newton iterations is spent ({} of at most {cap})",
-                    self.statistics.newton_iterations
-                );
+                ))
+            } else {
+                self.newton_cap.filter(|&cap| total >= cap).map(|cap| {
+                    format!(
+                        "the caller's budget of Newton iterations is spent ({total} of at most {cap})"
+                    )
+                })
+            };
+            if let Some(what) = over {
                 return Err(stop(
                     FailureKind::WorkLimit(what),
                     smallest,
