@@ -33,7 +33,8 @@ enum Command {
         /// Number of steps (default: every row of the irrigation file).
         #[arg(long)]
         steps: Option<usize>,
-        /// Soil texture (Carsel & Parrish 1988), e.g. sandy-loam, loam, clay.
+        /// Soil: a texture (Carsel & Parrish 1988), e.g. sandy-loam, loam,
+        /// clay, or `ks=…,alpha=…,n=…,theta_r=…,theta_s=…` (SI, α in 1/m).
         #[arg(long, default_value = "sandy-loam")]
         soil: String,
         /// Process noise level, e.g. 0.02 for 2 %.
@@ -231,7 +232,8 @@ fn main() -> ExitCode {
             seed,
             out,
         } => (|| {
-            let soil: Texture = soil.parse()?;
+            let (soil, _) = rootzone::experiment::estimated::parse_soil(&soil)
+                .map_err(|e| anyhow::anyhow!("--soil: {}", e.trim_start_matches("soil: ")))?;
             run_simulation(&SimulateOptions {
                 weather,
                 irrigation,

@@ -4,7 +4,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use crate::soil::{Field, FieldSettings, IntegrationError, Texture};
+use crate::soil::{Field, FieldSettings, IntegrationError, VanGenuchten};
 use crate::weather::{InputError, WeatherSeries, read_table};
 
 /// What to simulate.
@@ -16,8 +16,8 @@ pub struct SimulateOptions {
     pub irrigation: PathBuf,
     /// Steps to simulate; default: every row of the irrigation file.
     pub steps: Option<usize>,
-    /// Soil texture.
-    pub soil: Texture,
+    /// Soil (a texture's parameters or any valid set).
+    pub soil: VanGenuchten,
     /// Process noise level (fraction).
     pub process_noise: f64,
     /// Measurement noise level (fraction).
@@ -144,7 +144,7 @@ pub fn simulate(
         .into());
     }
     let settings = FieldSettings {
-        soil: options.soil.parameters(),
+        soil: options.soil,
         process_noise: options.process_noise,
         measurement_noise: options.measurement_noise,
         seed: options.seed,

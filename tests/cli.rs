@@ -106,6 +106,41 @@ fn simulate_without_out_writes_to_stdout() {
     assert_eq!(text.lines().next().unwrap(), COLUMNS);
 }
 
+/// A soil given by its parameters simulates exactly as the texture of the
+/// same parameters, and another soil gives another run.
+#[test]
+fn simulate_takes_a_soil_by_its_parameters() {
+    let dir = tempfile::tempdir().unwrap();
+    let irrigation = write(dir.path(), "irr.csv", &schedule(12, 2e-6));
+    let run = |soil: &str| {
+        let result = rootzone(&[
+            "simulate",
+            "--weather",
+            &data("weather-rain.csv"),
+            "--irrigation",
+            &irrigation,
+            "--soil",
+            soil,
+        ]);
+        assert!(result.status.success(), "{soil}: {result:?}");
+        String::from_utf8(result.stdout).unwrap()
+    };
+    let loam = rootzone::soil::Texture::Loam.parameters();
+    let by_parameters = format!(
+        "ks={:e},alpha={:e},n={:e},theta_r={:e},theta_s={:e}",
+        loam.saturated_conductivity,
+        loam.alpha,
+        loam.n,
+        loam.residual_water_content,
+        loam.saturated_water_content
+    );
+    assert_eq!(run("loam"), run(&by_parameters));
+    assert_ne!(
+        run("loam"),
+        run(&by_parameters.replace("alpha=", "alpha=1"))
+    );
+}
+
 /// Each bad input: exit code 2, one line naming the file (and line and value
 /// where there is one), and no output file.
 #[test]
@@ -161,6 +196,15 @@ fn bad_input_exits_2_with_a_clear_message_and_no_output() {
         (
             vec!["--irrigation", &good, "--soil", "peat"],
             vec!["peat".into()],
+        ),
+        (
+            vec![
+                "--irrigation",
+                &good,
+                "--soil",
+                "ks=1e-6,alpha=2,n=1,theta_r=0.05,theta_s=0.4",
+            ],
+            vec!["--soil".into(), "n must be > 1".into()],
         ),
         (
             vec!["--irrigation", &good, "--process-noise=-1"],

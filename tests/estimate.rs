@@ -484,6 +484,62 @@ fn the_selection_drops_textures_far_behind_the_leader() {
     assert!(dropped, "no texture was dropped in 8 updates on a sand");
 }
 
+/// The "unknown" prior's selection runs again when the texture it kept
+/// cannot explain the readings: a plant that, from the second day on, dries
+/// under three times the ET0 the filter is told gives innovations the kept
+/// texture cannot follow, and the selection starts over (counted, not as a
+/// reset). Told the weather the plant gets, the same filter keeps its
+/// texture to the end.
+#[test]
+fn a_selected_texture_the_readings_contradict_is_selected_again() {
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
+    let run = |et0_factor: f64| -> Estimator {
+        let mut field = Field::new(FieldSettings {
+            soil: VanGenuchten::SANDY_LOAM,
+            process_noise: 0.02,
+            measurement_noise: 0.02,
+            seed: 7,
+            ..FieldSettings::default()
+        })
+        .unwrap();
+        let mut e = Estimator::new(
+            Prior::Unknown,
+            Crop::default(),
+            vec![sensor("root", 0.125)],
+            InitialGuess::Reading(field.measure()),
+            EstimatorSettings {
+                seed: 3,
+                ..EstimatorSettings::default()
+            },
+        )
+        .unwrap();
+        for k in 0..48 {
+            let told = weather.steps()[k].forcing(irrigation(k), DT);
+            let mut felt = told;
+            if k >= 12 {
+                felt.reference_et *= et0_factor;
+            }
+            let reading = field.step(felt).unwrap().measured_water_content;
+            e.predict(told, DT).unwrap();
+            if let Err(EstimateError::Diverged(_)) = e.update(&[(0, reading)]) {
+                e.reset_to_prior(&[(0, reading)]);
+            }
+        }
+        e
+    };
+    let told_the_truth = run(1.0);
+    assert_eq!(told_the_truth.statistics().reselections, 0);
+    assert_eq!(told_the_truth.statistics().resets, 0);
+    assert!(told_the_truth.selected_texture().is_some());
+    let misled = run(3.0);
+    assert!(
+        misled.statistics().reselections >= 1,
+        "{:?}",
+        misled.statistics()
+    );
+    assert_eq!(misled.statistics().resets, 0);
+}
+
 /// While the "unknown" prior selects the texture, a member whose forecast
 /// fails is replaced from its own texture, and a texture none of whose
 /// members can be integrated leaves the selection: no member ever carries

@@ -122,6 +122,11 @@ fn a_field_trains_uses_rolls_back_and_refuses_its_own_surrogate() {
         422,
         "soil",
     );
+    // a body that is no JSON object: not even the form feed that is
+    // whitespace to Rust but not to JSON starts a job
+    for body in ["\x0c", " \x0c\n", "[]", "null"] {
+        problem(start_job(&d, id, Some(body)), 422, "JSON object");
+    }
 
     // a job for the configured soil: 202, then progress, then success
     let r = start_job(&d, id, None);

@@ -316,6 +316,8 @@ pub struct ObservedRun {
     pub parameters: Vec<crate::estimate::ParameterEstimate>,
     pub resets: usize,
     pub replaced_members: u64,
+    /// How often the "unknown" prior's selection ran again.
+    pub reselections: u64,
     /// The texture the "unknown" prior's selection kept, if it ran.
     pub selected_texture: Option<crate::soil::Texture>,
 }
@@ -367,7 +369,6 @@ pub fn run_observed_loop(
     weather: &WeatherSeries,
     make: &mut LoopFactory<'_>,
 ) -> Result<ObservedRun, ClosedLoopError> {
-    use rand::RngExt;
     if weather.is_empty() {
         return Err(ClosedLoopError::NoWeather);
     }
@@ -392,20 +393,18 @@ pub fn run_observed_loop(
         ));
     }
     let own = cells.iter().position(|&c| c == column.sensor_cell());
-    let mut sensor_rng = ChaCha8Rng::seed_from_u64(settings.field.seed);
-    sensor_rng.set_stream(3);
-    let noise = settings.field.measurement_noise;
-    let mut read = |field: &mut Field, own_reading: f64| -> Vec<f64> {
-        let theta = field.water_contents();
-        cells
+    let (noise, seed) = (settings.field.measurement_noise, settings.field.seed);
+    // the plant's own sensor reads itself; the others as a simulated
+    // field's sensors do in the daemon and the field simulator
+    let read = |field: &Field, own_reading: f64| -> Vec<f64> {
+        sensor_depths
             .iter()
             .enumerate()
-            .map(|(k, &c)| {
+            .map(|(k, &depth)| {
                 if Some(k) == own {
                     own_reading
                 } else {
-                    let v = noise * (2.0 * sensor_rng.random::<f64>() - 1.0);
-                    theta[c] * (1.0 + v)
+                    crate::sim::sensor_reading(field, depth, k, noise, seed).0
                 }
             })
             .collect()
@@ -414,7 +413,7 @@ pub fn run_observed_loop(
     let mut forecast_rng = ChaCha8Rng::seed_from_u64(settings.forecast_seed);
     let initial_theta = field.water_content();
     let first_own = field.measure();
-    let first = read(&mut field, first_own);
+    let first = read(&field, first_own);
     let mut controller = make(&first);
     let horizon = controller.horizon();
     let last = weather.len() - 1;
@@ -433,7 +432,7 @@ pub fn run_observed_loop(
             step,
             message: e.to_string(),
         })?;
-        let readings = read(&mut field, report.measured_water_content);
+        let readings = read(&field, report.measured_water_content);
         let mut bias = 0.0;
         match &mut controller {
             LoopController::Oracle(c) | LoopController::Surrogate(c) => {
@@ -486,14 +485,15 @@ pub fn run_observed_loop(
             status: solution.status,
         });
     }
-    let (parameters, resets, replaced_members, selected_texture) = match &controller {
+    let (parameters, resets, replaced_members, reselections, selected_texture) = match &controller {
         LoopController::Estimated(e) => (
             e.estimator().parameters(),
             e.resets(),
             e.estimator().statistics().replaced_members,
+            e.estimator().statistics().reselections,
             e.estimator().selected_texture(),
         ),
-        _ => (Vec::new(), 0, 0, None),
+        _ => (Vec::new(), 0, 0, 0, None),
     };
     Ok(ObservedRun {
         run: ClosedLoopRun {
@@ -507,6 +507,51 @@ pub fn run_observed_loop(
         parameters,
         resets,
         replaced_members,
+        reselections,
         selected_texture,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::MpcSettings;
+    use crate::weather::DRY_SCENARIO;
+
+    /// The closed loop reads a plant's sensors other than its own with the
+    /// simulated plants' sensor model (`sim::sensor_reading`, which the
+    /// daemon and the field simulator use): the same plant at the same step
+    /// reads the same, within the noise level of the truth; the plant's own
+    /// sensor reads as the plant does.
+    #[test]
+    fn the_closed_loop_reads_other_sensors_as_a_simulated_field_does() {
+        let (noise, seed) = (0.05, 11);
+        let field = FieldSettings {
+            measurement_noise: noise,
+            seed,
+            initial_head: -0.3,
+            ..FieldSettings::default()
+        };
+        let settings = ClosedLoopSettings {
+            field,
+            steps: 1,
+            ..ClosedLoopSettings::default()
+        };
+        let weather = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").unwrap();
+        // the plant's own sensor (0.125 m) second, two others around it
+        let depths = [0.3, 0.125, 0.45];
+        let mut first = Vec::new();
+        run_observed_loop(&settings, &depths, &weather, &mut |r: &[f64]| {
+            first = r.to_vec();
+            LoopController::Oracle(Controller::oracle(MpcSettings::default(), 7200.0))
+        })
+        .unwrap();
+        let mut plant = Field::new(field).unwrap();
+        for k in [0, 2] {
+            let (measured, truth) = crate::sim::sensor_reading(&plant, depths[k], k, noise, seed);
+            assert_eq!(first[k], measured, "sensor {k}");
+            assert!(measured != truth && (measured / truth - 1.0).abs() <= noise);
+        }
+        assert_eq!(first[1], plant.measure());
+    }
 }

@@ -135,6 +135,13 @@ pub struct EstimatorSettings {
     /// estimates stored before this setting existed do).
     #[serde(default)]
     pub selection_prune: Option<f64>,
+    /// For the "unknown" prior, once it has selected: the mean normalised
+    /// innovation squared over the last `selection_updates` updates beyond
+    /// which the selected texture is taken not to explain the readings and
+    /// the selection runs again (None: never, as estimates stored before
+    /// this setting existed).
+    #[serde(default)]
+    pub reselect_nis: Option<f64>,
 }
 
 /// The variable in which the analysis updates the cells of a member.
@@ -178,6 +185,7 @@ impl Default for EstimatorSettings {
             members_per_texture: 8,
             analysis_variable: AnalysisVariable::WaterContent,
             selection_prune: Some(6.0),
+            reselect_nis: Some(4.0),
         }
     }
 }
@@ -219,6 +227,11 @@ impl EstimatorSettings {
             && !(gap.is_finite() && gap > 0.0)
         {
             return Err(format!("selection_prune must be finite and > 0, got {gap}"));
+        }
+        if let Some(limit) = self.reselect_nis
+            && !(limit.is_finite() && limit > 1.0)
+        {
+            return Err(format!("reselect_nis must be finite and > 1, got {limit}"));
         }
         if let Some(c) = self.localisation
             && !(c.is_finite() && c > 0.0)
@@ -297,6 +310,10 @@ pub struct Statistics {
     /// Members replaced after a failed integration.
     pub replaced_members: u64,
     pub resets: u64,
+    /// Selections run again because the selected texture did not explain
+    /// the readings (`EstimatorSettings::reselect_nis`).
+    #[serde(default)]
+    pub reselections: u64,
 }
 
 /// The prior, as stored in a snapshot.
@@ -334,6 +351,8 @@ pub struct EstimatorSnapshot {
     pub last_update: Option<UpdateReport>,
     pub selection: Option<Selection>,
     pub selected: Option<String>,
+    #[serde(default)]
+    pub recent_nis: Vec<f64>,
 }
 
 /// The ensemble filter.
@@ -355,6 +374,9 @@ pub struct Estimator {
     /// index) of every member and each group's log-likelihood so far.
     selection: Option<Selection>,
     selected: Option<Texture>,
+    /// The normalised innovations squared (mean over the readings) of the
+    /// updates since the selection ended, at most `selection_updates`.
+    recent_nis: Vec<f64>,
 }
 
 /// The texture selection of the "unknown" prior: every texture's
@@ -492,6 +514,7 @@ impl Estimator {
                 updates: 0,
             }),
             selected: None,
+            recent_nis: Vec::new(),
         })
     }
 
@@ -698,6 +721,7 @@ impl Estimator {
         self.clamp_members();
         self.check_finite()?;
         self.statistics.updates += 1;
+        self.check_selected_texture(&innovations, readings);
         let report = UpdateReport { innovations };
         self.last_update = Some(report.clone());
         if let Some(bad) = report.innovations.iter().find(|i| {
@@ -899,6 +923,47 @@ impl Estimator {
         self.clamp_members();
     }
 
+    /// Checks the texture the "unknown" prior's selection kept against the
+    /// readings: when the mean normalised innovation squared over the last
+    /// `selection_updates` updates exceeds [`EstimatorSettings::reselect_nis`]
+    /// (its expectation is 1 where the model explains the readings), the
+    /// selection is run again from the readings of now
+    /// ([`Estimator::reset_to_prior`], counted in
+    /// [`Statistics::reselections`], not as a reset). A single day of
+    /// dry-down can leave two unlike textures nearly tied (a loamy sand read
+    /// as a silt at 0.13); the days after it, with the soil wrongly chosen,
+    /// tell them apart.
+    fn check_selected_texture(&mut self, innovations: &[Innovation], readings: &[(usize, f64)]) {
+        let Some(limit) = self.settings.reselect_nis else {
+            return;
+        };
+        if self.selected.is_none() || self.selection.is_some() || innovations.is_empty() {
+            return;
+        }
+        let nis = innovations
+            .iter()
+            .map(|i| i.normalised.powi(2))
+            .sum::<f64>()
+            / innovations.len() as f64;
+        let window = self.settings.selection_updates.max(1);
+        self.recent_nis.push(nis);
+        if self.recent_nis.len() > window {
+            self.recent_nis.drain(..self.recent_nis.len() - window);
+        }
+        let mean = self.recent_nis.iter().sum::<f64>() / window as f64;
+        if self.recent_nis.len() == window && mean > limit {
+            tracing::debug!(
+                selected = ?self.selected,
+                mean_nis = mean,
+                "the selected texture does not explain the readings: selecting again"
+            );
+            let resets = self.statistics.resets;
+            self.reset_to_prior(readings);
+            self.statistics.resets = resets;
+            self.statistics.reselections += 1;
+        }
+    }
+
     /// The texture the "unknown" prior's selection kept, once it has.
     pub fn selected_texture(&self) -> Option<Texture> {
         self.selected
@@ -1033,6 +1098,7 @@ impl Estimator {
             updates: 0,
         });
         self.selected = None;
+        self.recent_nis.clear();
         self.statistics.resets += 1;
         self.last_update = None;
     }
@@ -1163,6 +1229,7 @@ impl Estimator {
             last_update: self.last_update.clone(),
             selection: self.selection.clone(),
             selected: self.selected.map(|t| t.name().to_string()),
+            recent_nis: self.recent_nis.clone(),
         }
     }
 
@@ -1238,6 +1305,7 @@ impl Estimator {
         check.rng.set_word_pos(snapshot.rng_word_pos);
         check.last_update = snapshot.last_update;
         check.selection = snapshot.selection;
+        check.recent_nis = snapshot.recent_nis;
         check.selected = match snapshot.selected {
             Some(name) => Some(name.parse::<Texture>().map_err(|e| e.to_string())?),
             None => None,

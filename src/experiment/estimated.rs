@@ -331,6 +331,7 @@ pub fn summary(case: &Case, run: &ObservedRun) -> Value {
         "parameters": parameters,
         "estimator_resets": run.resets,
         "replaced_members": run.replaced_members,
+        "reselections": run.reselections,
         "selected_texture": run.selected_texture.map(|t| t.name()),
         "fallbacks": r.fallbacks(),
     })
@@ -474,7 +475,7 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
         .collect();
     let mut written = Vec::new();
     let mut csv = String::from(
-        "plant,weather,seed,controller,irrigation_mm,dry_violation,wet_violation_after_entry,total_violation,sensor_rmse,profile_rmse,solve_mean_ms,estimator_mean_ms,estimator_p95_ms,resets,replaced_members,ln_ks,ln_ks_sd,ln_ks_truth,ln_alpha,ln_alpha_sd,ln_alpha_truth,n,n_truth,error\n",
+        "plant,weather,seed,controller,irrigation_mm,dry_violation,wet_violation_after_entry,total_violation,sensor_rmse,profile_rmse,solve_mean_ms,estimator_mean_ms,estimator_p95_ms,resets,replaced_members,reselections,ln_ks,ln_ks_sd,ln_ks_truth,ln_alpha,ln_alpha_sd,ln_alpha_truth,n,n_truth,error\n",
     );
     for r in &rows {
         match &r.outcome {
@@ -488,7 +489,7 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
                 let f = |key: &str| s[key].as_f64().map_or(String::new(), |v| v.to_string());
                 let _ = writeln!(
                     csv,
-                    "\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},",
+                    "\"{}\",{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},",
                     r.plant,
                     r.weather,
                     r.seed,
@@ -504,6 +505,7 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
                     s["estimator_ms"]["p95"],
                     s["estimator_resets"],
                     s["replaced_members"],
+                    s["reselections"],
                     p(0, "transformed_mean"),
                     p(0, "transformed_sd"),
                     p(0, "transformed_truth"),
@@ -517,7 +519,7 @@ pub fn e8(options: &ExperimentOptions) -> Result<Vec<PathBuf>, ExperimentError> 
             Err(e) => {
                 let _ = writeln!(
                     csv,
-                    "\"{}\",{},{},{},,,,,,,,,,,,,,,,,,,,\"{}\"",
+                    "\"{}\",{},{},{},,,,,,,,,,,,,,,,,,,,,\"{}\"",
                     r.plant,
                     r.weather,
                     r.seed,

@@ -992,6 +992,8 @@ async fn get_estimate(
             "parameters": parameters,
             "innovations": est.last_update().map(|u| u.innovations.clone()).unwrap_or_default(),
             "resets": stored.resets,
+            "reselections": est.statistics().reselections,
+            "selected_texture": est.selected_texture().map(|t| t.name()),
             "members": est.settings().members,
         })))
     })

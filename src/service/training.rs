@@ -924,12 +924,15 @@ async fn post_job(
     authorize(&state, &headers)?;
     let field = load_field(&state, &id).await?;
     let bytes = raw_body(body)?;
-    let body: StartBody = if bytes.iter().all(|b| b.is_ascii_whitespace()) {
+    // JSON's whitespace (RFC 8259 §2): not the form feed that
+    // `is_ascii_whitespace` also counts, which is no JSON text
+    let json_space = |b: &&u8| matches!(b, b' ' | b'\t' | b'\n' | b'\r');
+    let body: StartBody = if bytes.iter().all(|b| json_space(&b)) {
         StartBody {
             soil: None,
             seed: None,
         }
-    } else if bytes.iter().find(|b| !b.is_ascii_whitespace()) != Some(&b'{') {
+    } else if bytes.iter().find(|b| !json_space(b)) != Some(&b'{') {
         // serde would take a struct from an array too
         return Err(ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,

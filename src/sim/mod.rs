@@ -88,10 +88,8 @@ pub fn scenario_forecast(
 }
 
 /// The readings of a plant's sensors other than the primary one (which is
-/// the plant's own reading): (sensor id, measured θ, true θ). Each reads θ
-/// of the cell holding its depth with relative noise U(−m, m), drawn from a
-/// stream of its own fixed by (seed, sensor, step), so a resumed plant
-/// reads the same.
+/// the plant's own reading): (sensor id, measured θ, true θ), each by
+/// [`sensor_reading`] with the sensor's place in `sensors` as its index.
 pub fn other_readings(
     plant: &Plant,
     sensors: &[SensorSpec],
@@ -99,25 +97,50 @@ pub fn other_readings(
     seed: u64,
 ) -> Vec<(String, f64, f64)> {
     let theta = plant.water_contents();
-    let dz = plant.column().cell_thickness();
     sensors
         .iter()
         .enumerate()
         .skip(1)
         .map(|(i, s)| {
-            let cell = ((s.depth / dz) as usize).min(theta.len() - 1);
-            let mut rng = ChaCha8Rng::seed_from_u64(
-                seed ^ (0x9e37_79b9_7f4a_7c15_u64.wrapping_mul(i as u64 + 1))
-                    ^ (plant.steps() as u64).rotate_left(32),
-            );
-            let v = noise * (2.0 * rng.random::<f64>() - 1.0);
-            (
-                s.id.clone(),
-                (theta[cell] * (1.0 + v)).clamp(0.0, 1.0),
-                theta[cell],
-            )
+            let (measured, truth) = reading_of(plant, &theta, s.depth, i, noise, seed);
+            (s.id.clone(), measured, truth)
         })
         .collect()
+}
+
+/// The reading of sensor `index` of a simulated plant at `depth` m (index 0
+/// is the plant's own sensor, which the plant reads itself): θ of the cell
+/// holding that depth with relative noise U(−m, m) of level `noise`, drawn
+/// from a stream of its own fixed by (seed, index, the plant's step), so a
+/// resumed plant reads the same and the daemon, the field simulator and the
+/// closed loop read the same plant alike. Returns (measured θ in [0, 1],
+/// true θ).
+pub fn sensor_reading(
+    plant: &Plant,
+    depth: f64,
+    index: usize,
+    noise: f64,
+    seed: u64,
+) -> (f64, f64) {
+    reading_of(plant, &plant.water_contents(), depth, index, noise, seed)
+}
+
+fn reading_of(
+    plant: &Plant,
+    theta: &[f64],
+    depth: f64,
+    index: usize,
+    noise: f64,
+    seed: u64,
+) -> (f64, f64) {
+    let dz = plant.column().cell_thickness();
+    let cell = ((depth / dz) as usize).min(theta.len() - 1);
+    let mut rng = ChaCha8Rng::seed_from_u64(
+        seed ^ (0x9e37_79b9_7f4a_7c15_u64.wrapping_mul(index as u64 + 1))
+            ^ (plant.steps() as u64).rotate_left(32),
+    );
+    let v = noise * (2.0 * rng.random::<f64>() - 1.0);
+    ((theta[cell] * (1.0 + v)).clamp(0.0, 1.0), theta[cell])
 }
 
 /// The stored state of a simulated plant, and what the API shows of it.

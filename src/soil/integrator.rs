@@ -1407,6 +1407,9 @@ struct Coordinates {
     saturated_conductivity: f64,
     /// Whether ψ is used at all (n < 2: there is a cusp).
     active: bool,
+    /// α|h| at or above which ψ is not the unknown, PSI_LIMIT^(1/(n−1)):
+    /// a cell away from the cusp then costs no power.
+    limit: f64,
 }
 
 /// a^(n−1) below which ψ is the unknown.
@@ -1419,6 +1422,7 @@ impl Coordinates {
             exponent: soil.n - 1.0,
             saturated_conductivity: soil.saturated_conductivity,
             active: soil.n < 2.0,
+            limit: PSI_LIMIT.powf(1.0 / (soil.n - 1.0)),
         }
     }
 
@@ -1430,7 +1434,11 @@ impl Coordinates {
         if h >= 0.0 {
             return Some(self.alpha * h);
         }
-        let p = (-self.alpha * h).powf(self.exponent);
+        let a = -self.alpha * h;
+        if a >= self.limit {
+            return None;
+        }
+        let p = a.powf(self.exponent);
         (p < PSI_LIMIT).then_some(-p)
     }
 
