@@ -540,6 +540,70 @@ fn a_selected_texture_the_readings_contradict_is_selected_again() {
     assert_eq!(misled.statistics().resets, 0);
 }
 
+/// A declared texture the readings refute gives way to the "unknown"
+/// prior: a sandy loam declared clay (the clay model has it barely drain
+/// and its θ range far off) is selected among the twelve textures after the
+/// first day, and ends on a texture of the sandy loam's coarse side; the
+/// same field declared sandy loam keeps its prior.
+#[test]
+fn a_declared_texture_the_readings_refute_gives_way_to_the_unknown_prior() {
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
+    let run = |declared: Texture| -> Estimator {
+        let mut field = Field::new(FieldSettings {
+            soil: VanGenuchten::SANDY_LOAM,
+            process_noise: 0.02,
+            measurement_noise: 0.02,
+            seed: 5,
+            ..FieldSettings::default()
+        })
+        .unwrap();
+        let mut e = Estimator::new(
+            Prior::Texture(declared),
+            Crop::default(),
+            vec![sensor("root", 0.125)],
+            InitialGuess::Reading(field.measure()),
+            EstimatorSettings {
+                seed: 2,
+                ..EstimatorSettings::default()
+            },
+        )
+        .unwrap();
+        for k in 0..48 {
+            let forcing = weather.steps()[k].forcing(irrigation(k), DT);
+            let reading = field.step(forcing).unwrap().measured_water_content;
+            e.predict(forcing, DT).unwrap();
+            if let Err(EstimateError::Diverged(_)) = e.update(&[(0, reading)]) {
+                e.reset_to_prior(&[(0, reading)]);
+            }
+        }
+        e
+    };
+    let right = run(Texture::SandyLoam);
+    assert_eq!(right.statistics().reselections, 0);
+    assert_eq!(*right.prior(), Prior::Texture(Texture::SandyLoam));
+    let wrong = run(Texture::Clay);
+    assert!(
+        wrong.statistics().reselections >= 1,
+        "{:?}",
+        wrong.statistics()
+    );
+    assert_eq!(*wrong.prior(), Prior::Unknown);
+    let kept = wrong.selected_texture().expect("the selection has ended");
+    assert!(
+        [
+            Texture::Sand,
+            Texture::LoamySand,
+            Texture::SandyLoam,
+            Texture::Loam
+        ]
+        .contains(&kept),
+        "{kept:?}"
+    );
+    // a restart resumes the switched filter as it was
+    let again = Estimator::restore(wrong.snapshot()).unwrap();
+    assert_eq!(again.snapshot(), wrong.snapshot());
+}
+
 /// While the "unknown" prior selects the texture, a member whose forecast
 /// fails is replaced from its own texture, and a texture none of whose
 /// members can be integrated leaves the selection: no member ever carries

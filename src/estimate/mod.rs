@@ -135,11 +135,12 @@ pub struct EstimatorSettings {
     /// estimates stored before this setting existed do).
     #[serde(default)]
     pub selection_prune: Option<f64>,
-    /// For the "unknown" prior, once it has selected: the mean normalised
-    /// innovation squared over the last `selection_updates` updates beyond
-    /// which the selected texture is taken not to explain the readings and
-    /// the selection runs again (None: never, as estimates stored before
-    /// this setting existed).
+    /// The mean normalised innovation squared over the last
+    /// `selection_updates` updates beyond which the texture in use (the
+    /// "unknown" prior's selected one, or a declared one after its first
+    /// `selection_updates` updates) is taken not to explain the readings,
+    /// and the "unknown" prior's selection runs (None: never, as estimates
+    /// stored before this setting existed).
     #[serde(default)]
     pub reselect_nis: Option<f64>,
 }
@@ -310,8 +311,8 @@ pub struct Statistics {
     /// Members replaced after a failed integration.
     pub replaced_members: u64,
     pub resets: u64,
-    /// Selections run again because the selected texture did not explain
-    /// the readings (`EstimatorSettings::reselect_nis`).
+    /// Selections run because the texture in use (selected or declared)
+    /// did not explain the readings (`EstimatorSettings::reselect_nis`).
     #[serde(default)]
     pub reselections: u64,
 }
@@ -353,6 +354,8 @@ pub struct EstimatorSnapshot {
     pub selected: Option<String>,
     #[serde(default)]
     pub recent_nis: Vec<f64>,
+    #[serde(default)]
+    pub since_reset: u64,
 }
 
 /// The ensemble filter.
@@ -377,6 +380,8 @@ pub struct Estimator {
     /// The normalised innovations squared (mean over the readings) of the
     /// updates since the selection ended, at most `selection_updates`.
     recent_nis: Vec<f64>,
+    /// Updates since the start or the last reset.
+    since_reset: u64,
 }
 
 /// The texture selection of the "unknown" prior: every texture's
@@ -515,6 +520,7 @@ impl Estimator {
             }),
             selected: None,
             recent_nis: Vec::new(),
+            since_reset: 0,
         })
     }
 
@@ -923,21 +929,30 @@ impl Estimator {
         self.clamp_members();
     }
 
-    /// Checks the texture the "unknown" prior's selection kept against the
-    /// readings: when the mean normalised innovation squared over the last
-    /// `selection_updates` updates exceeds [`EstimatorSettings::reselect_nis`]
-    /// (its expectation is 1 where the model explains the readings), the
-    /// selection is run again from the readings of now
-    /// ([`Estimator::reset_to_prior`], counted in
-    /// [`Statistics::reselections`], not as a reset). A single day of
-    /// dry-down can leave two unlike textures nearly tied (a loamy sand read
-    /// as a silt at 0.13); the days after it, with the soil wrongly chosen,
-    /// tell them apart.
+    /// Checks the texture the "unknown" prior's selection kept, or the
+    /// texture a field was declared, against the readings: when the mean
+    /// normalised innovation squared over the last `selection_updates`
+    /// updates exceeds [`EstimatorSettings::reselect_nis`] (its expectation
+    /// is 1 where the model explains the readings), the "unknown" prior's
+    /// selection runs from the readings of now ([`Estimator::reset_to_prior`],
+    /// counted in [`Statistics::reselections`], not as a reset). A single
+    /// day of dry-down can leave two unlike textures nearly tied (a loamy
+    /// sand read as a silt at 0.13), and a grower's guess can be wrong (a
+    /// sandy loam declared clay was left to dry out); the days after it,
+    /// with the soil wrongly taken, tell them apart.
     fn check_selected_texture(&mut self, innovations: &[Innovation], readings: &[(usize, f64)]) {
         let Some(limit) = self.settings.reselect_nis else {
             return;
         };
-        if self.selected.is_none() || self.selection.is_some() || innovations.is_empty() {
+        self.since_reset += 1;
+        // a declared texture's parameters get the day the "unknown" prior
+        // spends selecting to settle before they are judged
+        let declared = matches!(self.prior, Prior::Texture(_))
+            && self.since_reset > self.settings.selection_updates as u64;
+        if !(self.selected.is_some() || declared)
+            || self.selection.is_some()
+            || innovations.is_empty()
+        {
             return;
         }
         let nis = innovations
@@ -957,6 +972,10 @@ impl Estimator {
                 mean_nis = mean,
                 "the selected texture does not explain the readings: selecting again"
             );
+            if declared {
+                // the declared texture is a belief the readings refute
+                self.prior = Prior::Unknown;
+            }
             let resets = self.statistics.resets;
             self.reset_to_prior(readings);
             self.statistics.resets = resets;
@@ -1075,14 +1094,17 @@ impl Estimator {
             .find(|&&(k, theta)| k < self.sensors.len() && (0.0..=1.0).contains(&theta))
             .map(|&(_, theta)| theta);
         let n = self.cells();
-        let size = self.initial_heads.len();
-        let (_, selecting) = initial_members(&self.prior, &self.settings);
+        // the prior's own size: a declared texture the readings contradict
+        // is followed by the "unknown" prior's larger ensemble
+        let (size, selecting) = initial_members(&self.prior, &self.settings);
+        let resized = size != self.initial_heads.len();
         self.ensemble = DMatrix::zeros(n + PARAMETERS, size);
+        let mut started = Vec::with_capacity(if resized { size } else { 0 });
         for j in 0..size {
             let p = self.prior.sample(j, &mut self.rng);
             let heads = match reading {
                 Some(theta) => heads_at_reading(&prior::to_soil(&p), theta, n, &mut self.rng),
-                None => self.initial_heads[j].clone(),
+                None => self.initial_heads[j % self.initial_heads.len()].clone(),
             };
             for i in 0..n {
                 self.ensemble[(i, j)] = heads[i];
@@ -1090,6 +1112,12 @@ impl Estimator {
             for q in 0..PARAMETERS {
                 self.ensemble[(n + q, j)] = p[q];
             }
+            if resized {
+                started.push(heads);
+            }
+        }
+        if resized {
+            self.initial_heads = started;
         }
         let textures = Texture::ALL.len();
         self.selection = selecting.then(|| Selection {
@@ -1099,6 +1127,7 @@ impl Estimator {
         });
         self.selected = None;
         self.recent_nis.clear();
+        self.since_reset = 0;
         self.statistics.resets += 1;
         self.last_update = None;
     }
@@ -1230,6 +1259,7 @@ impl Estimator {
             selection: self.selection.clone(),
             selected: self.selected.map(|t| t.name().to_string()),
             recent_nis: self.recent_nis.clone(),
+            since_reset: self.since_reset,
         }
     }
 
@@ -1306,6 +1336,7 @@ impl Estimator {
         check.last_update = snapshot.last_update;
         check.selection = snapshot.selection;
         check.recent_nis = snapshot.recent_nis;
+        check.since_reset = snapshot.since_reset;
         check.selected = match snapshot.selected {
             Some(name) => Some(name.parse::<Texture>().map_err(|e| e.to_string())?),
             None => None,
