@@ -484,6 +484,47 @@ fn the_selection_drops_textures_far_behind_the_leader() {
     assert!(dropped, "no texture was dropped in 8 updates on a sand");
 }
 
+/// A sandy loam plant (2 % process and measurement noise, seed
+/// `plant_seed`) over 48 steps of weather-dry with the twins' irrigation,
+/// filtered from `prior`; from the second day on the plant dries under
+/// `et0_factor` times the ET0 the filter is told. A divergence resets the
+/// filter, as the callers do.
+fn filtered_season(prior: Prior, plant_seed: u64, filter_seed: u64, et0_factor: f64) -> Estimator {
+    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
+    let mut field = Field::new(FieldSettings {
+        soil: VanGenuchten::SANDY_LOAM,
+        process_noise: 0.02,
+        measurement_noise: 0.02,
+        seed: plant_seed,
+        ..FieldSettings::default()
+    })
+    .unwrap();
+    let mut e = Estimator::new(
+        prior,
+        Crop::default(),
+        vec![sensor("root", 0.125)],
+        InitialGuess::Reading(field.measure()),
+        EstimatorSettings {
+            seed: filter_seed,
+            ..EstimatorSettings::default()
+        },
+    )
+    .unwrap();
+    for k in 0..48 {
+        let told = weather.steps()[k].forcing(irrigation(k), DT);
+        let mut felt = told;
+        if k >= 12 {
+            felt.reference_et *= et0_factor;
+        }
+        let reading = field.step(felt).unwrap().measured_water_content;
+        e.predict(told, DT).unwrap();
+        if let Err(EstimateError::Diverged(_)) = e.update(&[(0, reading)]) {
+            e.reset_to_prior(&[(0, reading)]);
+        }
+    }
+    e
+}
+
 /// The "unknown" prior's selection runs again when the texture it kept
 /// cannot explain the readings: a plant that, from the second day on, dries
 /// under three times the ET0 the filter is told gives innovations the kept
@@ -492,46 +533,11 @@ fn the_selection_drops_textures_far_behind_the_leader() {
 /// texture to the end.
 #[test]
 fn a_selected_texture_the_readings_contradict_is_selected_again() {
-    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
-    let run = |et0_factor: f64| -> Estimator {
-        let mut field = Field::new(FieldSettings {
-            soil: VanGenuchten::SANDY_LOAM,
-            process_noise: 0.02,
-            measurement_noise: 0.02,
-            seed: 7,
-            ..FieldSettings::default()
-        })
-        .unwrap();
-        let mut e = Estimator::new(
-            Prior::Unknown,
-            Crop::default(),
-            vec![sensor("root", 0.125)],
-            InitialGuess::Reading(field.measure()),
-            EstimatorSettings {
-                seed: 3,
-                ..EstimatorSettings::default()
-            },
-        )
-        .unwrap();
-        for k in 0..48 {
-            let told = weather.steps()[k].forcing(irrigation(k), DT);
-            let mut felt = told;
-            if k >= 12 {
-                felt.reference_et *= et0_factor;
-            }
-            let reading = field.step(felt).unwrap().measured_water_content;
-            e.predict(told, DT).unwrap();
-            if let Err(EstimateError::Diverged(_)) = e.update(&[(0, reading)]) {
-                e.reset_to_prior(&[(0, reading)]);
-            }
-        }
-        e
-    };
-    let told_the_truth = run(1.0);
+    let told_the_truth = filtered_season(Prior::Unknown, 7, 3, 1.0);
     assert_eq!(told_the_truth.statistics().reselections, 0);
     assert_eq!(told_the_truth.statistics().resets, 0);
     assert!(told_the_truth.selected_texture().is_some());
-    let misled = run(3.0);
+    let misled = filtered_season(Prior::Unknown, 7, 3, 3.0);
     assert!(
         misled.statistics().reselections >= 1,
         "{:?}",
@@ -547,41 +553,10 @@ fn a_selected_texture_the_readings_contradict_is_selected_again() {
 /// same field declared sandy loam keeps its prior.
 #[test]
 fn a_declared_texture_the_readings_refute_gives_way_to_the_unknown_prior() {
-    let weather = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
-    let run = |declared: Texture| -> Estimator {
-        let mut field = Field::new(FieldSettings {
-            soil: VanGenuchten::SANDY_LOAM,
-            process_noise: 0.02,
-            measurement_noise: 0.02,
-            seed: 5,
-            ..FieldSettings::default()
-        })
-        .unwrap();
-        let mut e = Estimator::new(
-            Prior::Texture(declared),
-            Crop::default(),
-            vec![sensor("root", 0.125)],
-            InitialGuess::Reading(field.measure()),
-            EstimatorSettings {
-                seed: 2,
-                ..EstimatorSettings::default()
-            },
-        )
-        .unwrap();
-        for k in 0..48 {
-            let forcing = weather.steps()[k].forcing(irrigation(k), DT);
-            let reading = field.step(forcing).unwrap().measured_water_content;
-            e.predict(forcing, DT).unwrap();
-            if let Err(EstimateError::Diverged(_)) = e.update(&[(0, reading)]) {
-                e.reset_to_prior(&[(0, reading)]);
-            }
-        }
-        e
-    };
-    let right = run(Texture::SandyLoam);
+    let right = filtered_season(Prior::Texture(Texture::SandyLoam), 5, 2, 1.0);
     assert_eq!(right.statistics().reselections, 0);
     assert_eq!(*right.prior(), Prior::Texture(Texture::SandyLoam));
-    let wrong = run(Texture::Clay);
+    let wrong = filtered_season(Prior::Texture(Texture::Clay), 5, 2, 1.0);
     assert!(
         wrong.statistics().reselections >= 1,
         "{:?}",
