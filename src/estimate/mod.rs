@@ -934,7 +934,7 @@ impl Estimator {
     /// normalised innovation squared over the last `selection_updates`
     /// updates exceeds [`EstimatorSettings::reselect_nis`] (its expectation
     /// is 1 where the model explains the readings), the "unknown" prior's
-    /// selection runs from the readings of now ([`Estimator::reset_to_prior`],
+    /// selection runs from the readings of now ([`Estimator::restart`],
     /// counted in [`Statistics::reselections`], not as a reset). A single
     /// day of dry-down can leave two unlike textures nearly tied (a loamy
     /// sand read as a silt at 0.13), and a grower's guess can be wrong (a
@@ -976,9 +976,7 @@ impl Estimator {
                 // the declared texture is a belief the readings refute
                 self.prior = Prior::Unknown;
             }
-            let resets = self.statistics.resets;
-            self.reset_to_prior(readings);
-            self.statistics.resets = resets;
+            self.restart(readings);
             self.statistics.reselections += 1;
         }
     }
@@ -1089,6 +1087,14 @@ impl Estimator {
     /// the heads the filter started from (a reset long after the start
     /// would otherwise begin from a water content the field left days ago).
     pub fn reset_to_prior(&mut self, readings: &[(usize, f64)]) {
+        self.restart(readings);
+        self.statistics.resets += 1;
+    }
+
+    /// [`Estimator::reset_to_prior`] without counting it: the members
+    /// drawn afresh from the prior, the selection (if the prior has one)
+    /// started, the last update forgotten.
+    fn restart(&mut self, readings: &[(usize, f64)]) {
         let reading = readings
             .iter()
             .find(|&&(k, theta)| k < self.sensors.len() && (0.0..=1.0).contains(&theta))
@@ -1128,7 +1134,6 @@ impl Estimator {
         self.selected = None;
         self.recent_nis.clear();
         self.since_reset = 0;
-        self.statistics.resets += 1;
         self.last_update = None;
     }
 

@@ -926,13 +926,13 @@ async fn post_job(
     let bytes = raw_body(body)?;
     // JSON's whitespace (RFC 8259 §2): not the form feed that
     // `is_ascii_whitespace` also counts, which is no JSON text
-    let json_space = |b: &&u8| matches!(b, b' ' | b'\t' | b'\n' | b'\r');
-    let body: StartBody = if bytes.iter().all(|b| json_space(&b)) {
+    let json_space = |b: &u8| matches!(b, b' ' | b'\t' | b'\n' | b'\r');
+    let body: StartBody = if bytes.iter().all(json_space) {
         StartBody {
             soil: None,
             seed: None,
         }
-    } else if bytes.iter().find(|b| !json_space(b)) != Some(&b'{') {
+    } else if bytes.iter().find(|&b| !json_space(b)) != Some(&b'{') {
         // serde would take a struct from an array too
         return Err(ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,
