@@ -8,7 +8,8 @@ use std::time::Duration;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::soil::{Field, FieldSettings};
+use crate::sim::{SensedPlant, SensedStep};
+use crate::soil::FieldSettings;
 use crate::weather::{WeatherSeries, WeatherStep, rate_to_mm};
 
 use super::controller::Controller;
@@ -204,11 +205,14 @@ pub fn run_closed_loop(
     if weather.is_empty() {
         return Err(ClosedLoopError::NoWeather);
     }
-    let mut field = Field::new(settings.field).map_err(ClosedLoopError::Field)?;
+    // one sensor, the plant's own at the rooting depth
+    let depth = settings.field.crop.rooting_depth;
+    let mut plant =
+        SensedPlant::new(settings.field, vec![depth]).map_err(ClosedLoopError::Field)?;
     let sampling_time = settings.field.sampling_time;
     let mut forecast_rng = ChaCha8Rng::seed_from_u64(settings.forecast_seed);
-    let initial_theta = field.water_content();
-    let first = field.measure();
+    let initial_theta = plant.plant().water_content();
+    let first = plant.read_now().readings[0].0;
     let mut controller = make(first);
     let horizon = controller.settings().horizon;
     let last = weather.len() - 1;
@@ -227,27 +231,24 @@ pub fn run_closed_loop(
         for (k, w) in forecast.iter_mut().enumerate() {
             *w = told(step + k, *w);
         }
-        let decision = controller.decide(&forecast, Some(&field));
+        let decision = controller.decide(&forecast, Some(plant.plant()));
         let truth = weather.steps()[step.min(last)];
-        let report = field
+        let sensed = plant
             .step(truth.forcing(decision.setpoint, sampling_time))
             .map_err(|e| ClosedLoopError::Plant {
                 step,
                 message: e.to_string(),
             })?;
-        controller.observe(
-            decision.setpoint,
-            &told(step, truth),
-            report.measured_water_content,
-        );
+        let (measured_theta, true_theta) = sensed.readings[0];
+        controller.observe(decision.setpoint, &told(step, truth), measured_theta);
         let solution = decision.solution;
         records.push(StepRecord {
             step,
             irrigation: decision.setpoint,
             precip_mm: truth.precip_mm,
             et0_mm: truth.et0_mm,
-            true_theta: report.water_content,
-            measured_theta: report.measured_water_content,
+            true_theta,
+            measured_theta,
             zone: solution
                 .zone
                 .first()
@@ -264,7 +265,7 @@ pub fn run_closed_loop(
         records,
         sampling_time,
         scoring_zone: settings.scoring_zone,
-        water_balance: field.water_balance(),
+        water_balance: plant.plant().water_balance(),
     })
 }
 
@@ -372,48 +373,15 @@ pub fn run_observed_loop(
     if weather.is_empty() {
         return Err(ClosedLoopError::NoWeather);
     }
-    let mut field = Field::new(settings.field).map_err(ClosedLoopError::Field)?;
-    let column = *field.column();
-    let cells: Vec<usize> = sensor_depths
-        .iter()
-        .map(|&d| {
-            if d.is_finite() && (0.0..=column.depth()).contains(&d) {
-                Ok(crate::estimate::cell_of(d, column.depth(), column.cells()))
-            } else {
-                Err(ClosedLoopError::Field(format!(
-                    "sensor depth {d} m is outside the column (0 … {} m)",
-                    column.depth()
-                )))
-            }
-        })
-        .collect::<Result<_, _>>()?;
-    if cells.is_empty() {
-        return Err(ClosedLoopError::Field(
-            "at least one sensor is needed".into(),
-        ));
-    }
-    let own = cells.iter().position(|&c| c == column.sensor_cell());
-    let (noise, seed) = (settings.field.measurement_noise, settings.field.seed);
-    // the plant's own sensor reads itself; the others as a simulated
-    // field's sensors do in the daemon and the field simulator
-    let read = |field: &Field, own_reading: f64| -> Vec<f64> {
-        sensor_depths
-            .iter()
-            .enumerate()
-            .map(|(k, &depth)| {
-                if Some(k) == own {
-                    own_reading
-                } else {
-                    crate::sim::sensor_reading(field, depth, k, noise, seed).0
-                }
-            })
-            .collect()
-    };
+    let mut plant =
+        SensedPlant::new(settings.field, sensor_depths.to_vec()).map_err(ClosedLoopError::Field)?;
+    let column = *plant.plant().column();
+    let own = plant.own();
+    let measured = |step: &SensedStep| -> Vec<f64> { step.readings.iter().map(|r| r.0).collect() };
     let sampling_time = settings.field.sampling_time;
     let mut forecast_rng = ChaCha8Rng::seed_from_u64(settings.forecast_seed);
-    let initial_theta = field.water_content();
-    let first_own = field.measure();
-    let first = read(&field, first_own);
+    let initial_theta = plant.plant().water_content();
+    let first = measured(&plant.read_now());
     let mut controller = make(&first);
     let horizon = controller.horizon();
     let last = weather.len() - 1;
@@ -422,17 +390,18 @@ pub fn run_observed_loop(
     for step in 0..settings.steps {
         let forecast = weather.forecast(step, horizon, settings.forecast_error, &mut forecast_rng);
         let decision = match &mut controller {
-            LoopController::Oracle(c) => c.decide(&forecast, Some(&field)),
+            LoopController::Oracle(c) => c.decide(&forecast, Some(plant.plant())),
             LoopController::Surrogate(c) => c.decide(&forecast, None),
             LoopController::Estimated(e) => e.decide(&forecast),
         };
         let truth = weather.steps()[step.min(last)];
         let forcing = truth.forcing(decision.setpoint, sampling_time);
-        let report = field.step(forcing).map_err(|e| ClosedLoopError::Plant {
+        let sensed = plant.step(forcing).map_err(|e| ClosedLoopError::Plant {
             step,
             message: e.to_string(),
         })?;
-        let readings = read(&field, report.measured_water_content);
+        let readings = measured(&sensed);
+        let field = plant.plant();
         let mut bias = 0.0;
         match &mut controller {
             LoopController::Oracle(c) | LoopController::Surrogate(c) => {
@@ -472,7 +441,7 @@ pub fn run_observed_loop(
             irrigation: decision.setpoint,
             precip_mm: truth.precip_mm,
             et0_mm: truth.et0_mm,
-            true_theta: report.water_content,
+            true_theta: field.water_content(),
             measured_theta: own.map_or(readings[0], |k| readings[k]),
             zone: solution
                 .zone
@@ -501,7 +470,7 @@ pub fn run_observed_loop(
             records,
             sampling_time,
             scoring_zone: settings.scoring_zone,
-            water_balance: field.water_balance(),
+            water_balance: plant.plant().water_balance(),
         },
         estimates,
         parameters,
@@ -546,7 +515,7 @@ mod tests {
             LoopController::Oracle(Controller::oracle(MpcSettings::default(), 7200.0))
         })
         .unwrap();
-        let mut plant = Field::new(field).unwrap();
+        let mut plant = crate::soil::Field::new(field).unwrap();
         for k in [0, 2] {
             let (measured, truth) = crate::sim::sensor_reading(&plant, depths[k], k, noise, seed);
             assert_eq!(first[k], measured, "sensor {k}");

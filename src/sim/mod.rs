@@ -8,10 +8,8 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::service::wire::{
-    FieldSpec, Forecast, Measurement, Scenario, SensorSpec, SimulationSpec,
-};
-use crate::soil::{ColumnState, Field as Plant, FieldSettings, IntegrationError};
+use crate::service::wire::{FieldSpec, Forecast, Measurement, Scenario, SimulationSpec};
+use crate::soil::{ColumnState, Field as Plant, FieldSettings, Forcing, IntegrationError};
 use crate::weather::{DRY_SCENARIO, RAIN_SCENARIO, WeatherSeries, WeatherStep};
 
 /// Scenario step [s].
@@ -87,34 +85,13 @@ pub fn scenario_forecast(
     }
 }
 
-/// The readings of a plant's sensors other than the primary one (which is
-/// the plant's own reading): (sensor id, measured θ, true θ), each by
-/// [`sensor_reading`] with the sensor's place in `sensors` as its index.
-pub fn other_readings(
-    plant: &Plant,
-    sensors: &[SensorSpec],
-    noise: f64,
-    seed: u64,
-) -> Vec<(String, f64, f64)> {
-    let theta = plant.water_contents();
-    sensors
-        .iter()
-        .enumerate()
-        .skip(1)
-        .map(|(i, s)| {
-            let (measured, truth) = reading_of(plant, &theta, s.depth, i, noise, seed);
-            (s.id.clone(), measured, truth)
-        })
-        .collect()
-}
-
-/// The reading of sensor `index` of a simulated plant at `depth` m (index 0
-/// is the plant's own sensor, which the plant reads itself): θ of the cell
-/// holding that depth with relative noise U(−m, m) of level `noise`, drawn
-/// from a stream of its own fixed by (seed, index, the plant's step), so a
-/// resumed plant reads the same and the daemon, the field simulator and the
-/// closed loop read the same plant alike. Returns (measured θ in [0, 1],
-/// true θ).
+/// The reading of sensor `index` of a simulated plant at `depth` m: θ of
+/// the cell holding that depth ([`cell_at`]) with relative noise U(−m, m)
+/// of level `noise`, drawn from a stream of its own fixed by (seed, index,
+/// the plant's step), so a resumed plant reads the same and the daemon, the
+/// field simulator and the closed loop read the same plant alike. (The
+/// plant's own sensor, [`SensedPlant`]'s `own`, reads the plant's own
+/// measurement stream instead.) Returns (measured θ in [0, 1], true θ).
 pub fn sensor_reading(
     plant: &Plant,
     depth: f64,
@@ -125,6 +102,12 @@ pub fn sensor_reading(
     reading_of(plant, &plant.water_contents(), depth, index, noise, seed)
 }
 
+/// The cell of a column of cells of thickness `dz` (`cells` of them) that
+/// holds `depth`.
+pub fn cell_at(depth: f64, dz: f64, cells: usize) -> usize {
+    ((depth / dz) as usize).min(cells - 1)
+}
+
 fn reading_of(
     plant: &Plant,
     theta: &[f64],
@@ -133,14 +116,109 @@ fn reading_of(
     noise: f64,
     seed: u64,
 ) -> (f64, f64) {
-    let dz = plant.column().cell_thickness();
-    let cell = ((depth / dz) as usize).min(theta.len() - 1);
+    let cell = cell_at(depth, plant.column().cell_thickness(), theta.len());
     let mut rng = ChaCha8Rng::seed_from_u64(
         seed ^ (0x9e37_79b9_7f4a_7c15_u64.wrapping_mul(index as u64 + 1))
             ^ (plant.steps() as u64).rotate_left(32),
     );
     let v = noise * (2.0 * rng.random::<f64>() - 1.0);
     ((theta[cell] * (1.0 + v)).clamp(0.0, 1.0), theta[cell])
+}
+
+/// A Richards plant and the sensors that read it: the one simulated plant
+/// of the daemon's simulated fields, the field simulator (both through
+/// [`SimulatedPlant`], which adds the clock and the scenario) and the
+/// in-process closed loop (which drives it under its own weather series).
+///
+/// The first sensor in the plant's own sensor cell (the rooting depth's)
+/// reads the plant's own measurement stream ([`Plant::measure`]); every
+/// other sensor reads its cell by [`sensor_reading`], its place in the
+/// list being its index.
+pub struct SensedPlant {
+    plant: Plant,
+    depths: Vec<f64>,
+    own: Option<usize>,
+}
+
+/// One step of a [`SensedPlant`]: every sensor's (measured, true) θ, in
+/// the sensors' order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensedStep {
+    pub readings: Vec<(f64, f64)>,
+}
+
+impl SensedPlant {
+    /// The plant of `settings` read by sensors at `depths` [m], each in
+    /// [0, the column's depth].
+    pub fn new(settings: FieldSettings, depths: Vec<f64>) -> Result<SensedPlant, String> {
+        let plant = Plant::new(settings)?;
+        let column = plant.column();
+        if depths.is_empty() {
+            return Err("at least one sensor is needed".into());
+        }
+        if let Some(d) = depths
+            .iter()
+            .find(|d| !(d.is_finite() && (0.0..=column.depth()).contains(*d)))
+        {
+            return Err(format!(
+                "sensor depth {d} m is outside the column (0 … {} m)",
+                column.depth()
+            ));
+        }
+        let (dz, cells, own_cell) = (
+            column.cell_thickness(),
+            column.cells(),
+            column.sensor_cell(),
+        );
+        let own = depths
+            .iter()
+            .position(|&d| cell_at(d, dz, cells) == own_cell);
+        Ok(SensedPlant { plant, depths, own })
+    }
+
+    pub fn plant(&self) -> &Plant {
+        &self.plant
+    }
+
+    /// The index of the sensor that reads the plant's own measurement.
+    pub fn own(&self) -> Option<usize> {
+        self.own
+    }
+
+    /// Every sensor's (measured, true) θ now, the own sensor reading
+    /// `own_measured` (a draw the plant has just made).
+    fn read(&self, own_measured: f64) -> Vec<(f64, f64)> {
+        let s = self.plant.settings();
+        let theta = self.plant.water_contents();
+        self.depths
+            .iter()
+            .enumerate()
+            .map(|(k, &depth)| {
+                if Some(k) == self.own {
+                    (own_measured.clamp(0.0, 1.0), self.plant.water_content())
+                } else {
+                    reading_of(&self.plant, &theta, depth, k, s.measurement_noise, s.seed)
+                }
+            })
+            .collect()
+    }
+
+    /// The readings of the initial state (a draw from the own stream).
+    pub fn read_now(&mut self) -> SensedStep {
+        let own = self.plant.measure();
+        SensedStep {
+            readings: self.read(own),
+        }
+    }
+
+    /// One sampling step of the plant under `forcing`, then every
+    /// sensor's reading.
+    pub fn step(&mut self, forcing: Forcing) -> Result<SensedStep, IntegrationError> {
+        let report = self.plant.step(forcing)?;
+        Ok(SensedStep {
+            readings: self.read(report.measured_water_content),
+        })
+    }
 }
 
 /// The stored state of a simulated plant, and what the API shows of it.
@@ -175,14 +253,16 @@ pub struct Advance {
     pub skipped: Option<(DateTime<Utc>, DateTime<Utc>)>,
 }
 
-/// A simulated field: the Richards plant, when it is, and its sensors.
+/// A simulated field: its [`SensedPlant`] on the clock, in the weather of
+/// its scenario, driven by the setpoint in force.
 pub struct SimulatedPlant {
-    plant: Plant,
+    sensed: SensedPlant,
     time: DateTime<Utc>,
     /// Midnight (UTC) of the field's first day: the scenario's hour 0.
     day_zero: DateTime<Utc>,
     spec: SimulationSpec,
-    sensors: Vec<SensorSpec>,
+    /// The sensors' ids, the primary (first) one's none.
+    ids: Vec<Option<String>>,
     /// Whether the reading of the initial state has been taken.
     started: bool,
 }
@@ -206,11 +286,17 @@ impl SimulatedPlant {
             seed: sim.seed,
             ..FieldSettings::default()
         };
-        let mut plant = Plant::new(settings)?;
+        let sensors = field.effective_sensors();
+        let ids = sensors
+            .iter()
+            .enumerate()
+            .map(|(k, s)| (k > 0).then(|| s.id.clone()))
+            .collect();
+        let mut sensed = SensedPlant::new(settings, sensors.iter().map(|s| s.depth).collect())?;
         let mut time = start;
         let mut started = false;
         if let Some(state) = saved {
-            plant.restore(
+            sensed.plant.restore(
                 ColumnState {
                     heads: state.heads.clone(),
                     amounts: state.amounts,
@@ -222,11 +308,11 @@ impl SimulatedPlant {
             started = true;
         }
         Ok(SimulatedPlant {
-            plant,
+            sensed,
             time,
             day_zero: midnight(start),
             spec: sim,
-            sensors: field.effective_sensors(),
+            ids,
             started,
         })
     }
@@ -256,18 +342,19 @@ impl SimulatedPlant {
     }
 
     pub fn plant(&self) -> &Plant {
-        &self.plant
+        self.sensed.plant()
     }
 
     pub fn state(&self) -> PlantState {
-        let b = self.plant.water_balance();
+        let plant = self.sensed.plant();
+        let b = plant.water_balance();
         PlantState {
             time: self.time,
-            steps: self.plant.steps(),
-            heads: self.plant.pressure_heads().to_vec(),
-            amounts: self.plant.state().amounts,
-            theta: self.plant.water_content(),
-            theta_profile: self.plant.water_contents(),
+            steps: plant.steps(),
+            heads: plant.pressure_heads().to_vec(),
+            amounts: plant.state().amounts,
+            theta: plant.water_content(),
+            theta_profile: plant.water_contents(),
             infiltration_m: b.infiltration,
             drainage_m: b.drainage,
             uptake_m: b.uptake,
@@ -275,21 +362,13 @@ impl SimulatedPlant {
         }
     }
 
-    /// Every sensor's reading now.
-    fn read(&mut self, primary: f64, truth: f64, out: &mut Vec<Measurement>) {
-        out.push(Measurement {
-            time: self.time,
-            theta: primary.clamp(0.0, 1.0),
-            sensor: None,
-            raw: None,
-            true_theta: Some(truth),
-        });
-        let (noise, seed) = (self.spec.measurement_noise, self.spec.seed);
-        for (id, theta, truth) in other_readings(&self.plant, &self.sensors, noise, seed) {
+    /// The step's readings as measurements at the plant's time.
+    fn record(&self, step: SensedStep, out: &mut Vec<Measurement>) {
+        for (id, (theta, truth)) in self.ids.iter().zip(step.readings) {
             out.push(Measurement {
                 time: self.time,
                 theta,
-                sensor: Some(id),
+                sensor: id.clone(),
                 raw: None,
                 true_theta: Some(truth),
             });
@@ -313,8 +392,8 @@ impl SimulatedPlant {
         let mut out = Advance::default();
         if !self.started && self.time <= now {
             self.started = true;
-            let (m, t) = (self.plant.measure(), self.plant.water_content());
-            self.read(m, t, &mut out.readings);
+            let first = self.sensed.read_now();
+            self.record(first, &mut out.readings);
         }
         let behind = seconds(now - self.time) / step;
         let most = (max_catch_up_s / step).floor();
@@ -333,20 +412,117 @@ impl SimulatedPlant {
             }
             let forcing = scenario_weather(self.spec.scenario, self.day_zero, self.time)
                 .forcing(rate, SCENARIO_STEP);
-            let report = match self.plant.step(forcing) {
-                Ok(report) => report,
+            let step = match self.sensed.step(forcing) {
+                Ok(step) => step,
                 Err(e) => {
                     out.failure = Some(e);
                     break;
                 }
             };
             self.time += interval;
-            self.read(
-                report.measured_water_content,
-                report.water_content,
-                &mut out.readings,
-            );
+            self.record(step, &mut out.readings);
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn settings() -> FieldSettings {
+        FieldSettings {
+            initial_head: -0.3,
+            measurement_noise: 0.05,
+            seed: 4,
+            ..FieldSettings::default()
+        }
+    }
+
+    /// Whatever the sensors' order, the one in the rooting depth's cell
+    /// reads the plant's own stream and the others their own cells: a
+    /// field whose first sensor sits at 0.3 m gets θ of 0.3 m from it, not
+    /// the plant's reading at 0.125 m.
+    #[test]
+    fn each_sensor_reads_its_own_cell_whatever_the_order() {
+        let mut drained = settings();
+        // a profile that differs with depth: drained for a day
+        drained.initial_head = -1.0;
+        let depths = vec![0.3, 0.125, 0.45];
+        let mut sensed = SensedPlant::new(drained, depths.clone()).unwrap();
+        assert_eq!(sensed.own(), Some(1));
+        let mut twin = Plant::new(drained).unwrap();
+        let forcing = Forcing {
+            irrigation: 3e-6,
+            ..Forcing::default()
+        };
+        for _ in 0..3 {
+            let step = sensed.step(forcing).unwrap();
+            let report = twin.step(forcing).unwrap();
+            let theta = twin.water_contents();
+            let dz = twin.column().cell_thickness();
+            for (k, &d) in depths.iter().enumerate() {
+                let (measured, truth) = step.readings[k];
+                assert_eq!(truth, theta[(d / dz) as usize], "sensor {k} at {d} m");
+                assert!((measured / truth - 1.0).abs() <= 0.05);
+            }
+            assert_eq!(step.readings[1].0, report.measured_water_content);
+            // the cells differ, so a sensor reading another's cell would show
+            assert!((theta[(0.3 / dz) as usize] - theta[(0.125 / dz) as usize]).abs() > 1e-3);
+        }
+        // no sensor in the rooting cell: every sensor reads by sensor_reading
+        let only_deep = SensedPlant::new(settings(), vec![0.4]).unwrap();
+        assert_eq!(only_deep.own(), None);
+        for bad in [vec![], vec![0.6], vec![f64::NAN], vec![-0.1]] {
+            assert!(
+                SensedPlant::new(settings(), bad.clone()).is_err(),
+                "{bad:?}"
+            );
+        }
+    }
+
+    /// A daemon's simulated field whose primary sensor is not at the
+    /// rooting depth: its measurements (no sensor id) carry θ of their own
+    /// depth, and the named sensor at the rooting depth the plant's reading.
+    #[test]
+    fn a_simulated_fields_primary_sensor_reads_its_own_depth() {
+        use crate::service::wire::{FieldSpec, SensorSpec};
+        let field = FieldSpec {
+            sensors: vec![SensorSpec::default_at(0.35), SensorSpec::default_at(0.125)]
+                .into_iter()
+                .enumerate()
+                .map(|(k, s)| SensorSpec {
+                    id: format!("s{k}"),
+                    ..s
+                })
+                .collect(),
+            ..FieldSpec::demo()
+        };
+        let sim = SimulationSpec {
+            initial_head: -1.0,
+            ..SimulationSpec::default()
+        };
+        let start = DateTime::parse_from_rfc3339("2026-06-01T00:00:00Z")
+            .unwrap()
+            .with_timezone(&Utc);
+        let mut plant = SimulatedPlant::new(&field, sim, start, None).unwrap();
+        let advance = plant
+            .advance(start + TimeDelta::hours(6), 1e9, |t| {
+                Ok::<_, ()>((2e-6, t + TimeDelta::hours(6)))
+            })
+            .unwrap();
+        let n = advance.readings.len();
+        assert!(
+            n >= 4 && n.is_multiple_of(2),
+            "two sensors at each time, {n}"
+        );
+        let theta = plant.plant().water_contents();
+        let dz = plant.plant().column().cell_thickness();
+        let last = &advance.readings[n - 2..];
+        assert_eq!(last[0].sensor, None);
+        assert_eq!(last[0].true_theta, Some(theta[(0.35 / dz) as usize]));
+        assert_eq!(last[1].sensor.as_deref(), Some("s1"));
+        assert_eq!(last[1].true_theta, Some(plant.plant().water_content()));
+        assert!((theta[(0.35 / dz) as usize] - plant.plant().water_content()).abs() > 1e-3);
     }
 }
