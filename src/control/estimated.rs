@@ -9,7 +9,7 @@
 use std::time::{Duration, Instant};
 
 use crate::estimate::{EstimateError, Estimator, UpdateReport};
-use crate::soil::{Crop, Forcing};
+use crate::soil::{Crop, Forcing, VanGenuchten};
 use crate::weather::WeatherStep;
 
 use super::controller::Decision;
@@ -18,6 +18,81 @@ use super::model::RichardsModel;
 use super::mpc::{MpcSettings, ZoneMpc};
 use super::policy;
 use super::zone::ZoneSettings;
+
+/// What a Richards decision uses of a state estimate, as plain data: the
+/// mean heads (top first) and the estimated soil of a column `depth` deep.
+/// The daemon's cycle reads it from the stored estimate, the in-process
+/// controller from its running filter ([`EstimateView::of`]).
+#[derive(Debug, Clone)]
+pub struct EstimateView {
+    pub heads: Vec<f64>,
+    pub soil: VanGenuchten,
+    pub depth: f64,
+    /// Standard deviation of the estimated θ in the model's output cell
+    /// (the zone's back-off, [`policy::backed_off`]).
+    pub output_sd: f64,
+    /// Whether the "unknown" prior is still selecting the texture (the
+    /// Richards model is not settled: [`policy::StartUp`]).
+    pub selecting: bool,
+}
+
+impl EstimateView {
+    pub fn of(estimator: &Estimator) -> EstimateView {
+        EstimateView {
+            heads: estimator.mean_heads(),
+            soil: estimator.soil(),
+            depth: estimator.settings().depth,
+            output_sd: estimator.output_sd(),
+            selecting: estimator.selecting(),
+        }
+    }
+}
+
+/// One Richards-model control step on a state estimate, written once for
+/// the in-process [`EstimatedRichards`] and the daemon's
+/// `service::cycle::decide`: the model starts from the estimated heads with
+/// the estimated soil (its θ bounds too), the zone asked for (`zone`) has
+/// its lower bound backed off by the estimate's uncertainty
+/// ([`policy::backed_off`]), and while the texture is being selected the
+/// sound start holds a field whose `measured` θ is above the zone
+/// ([`policy::StartUp`]). Returns the step and the model it planned on (a
+/// model that cannot be built is the step's fallback reason).
+pub fn step_on_estimate(
+    mpc: &mut ZoneMpc,
+    zone: ZoneSettings,
+    estimate: &EstimateView,
+    crop: Crop,
+    weather: &[WeatherStep],
+    period: f64,
+    measured: Option<f64>,
+) -> (policy::Step, Option<RichardsModel>) {
+    let soil = estimate.soil;
+    mpc.settings.theta_r = soil.residual_water_content;
+    mpc.settings.theta_s = soil.saturated_water_content;
+    mpc.settings.zone = policy::backed_off(zone, estimate.output_sd);
+    let mut model = RichardsModel::from_state(
+        soil,
+        crop,
+        estimate.depth,
+        estimate.heads.clone(),
+        weather,
+        period,
+    )
+    .map_err(|e| format!("no Richards model on the estimate: {e}"));
+    let start_up = estimate.selecting.then_some(policy::StartUp {
+        settled: false,
+        measured,
+    });
+    let step = policy::step(
+        mpc,
+        model
+            .as_mut()
+            .map(|m| m as &mut dyn PredictionModel)
+            .map_err(|e| e.clone()),
+        start_up,
+    );
+    (step, model.ok())
+}
 
 /// The estimated-Richards controller.
 #[derive(Debug, Clone)]
@@ -97,35 +172,23 @@ impl EstimatedRichards {
         self.last_error.as_deref()
     }
 
-    /// Solves the zone MPC from the estimate under `forecast`.
+    /// Solves the zone MPC from the estimate under `forecast`
+    /// ([`step_on_estimate`], as the daemon's cycle does).
     pub fn decide(&mut self, forecast: &[WeatherStep]) -> Decision {
-        let soil = self.estimator.soil();
-        self.mpc.settings.theta_r = soil.residual_water_content;
-        self.mpc.settings.theta_s = soil.saturated_water_content;
-        let depth = self.estimator.settings().depth;
-        let sd = self.estimator.output_sd();
-        self.mpc.settings.zone = policy::backed_off(self.zone, sd);
-        let mut model = RichardsModel::from_state(
-            soil,
+        let view = EstimateView::of(&self.estimator);
+        let (step, _) = step_on_estimate(
+            &mut self.mpc,
+            self.zone,
+            &view,
             self.crop,
-            depth,
-            self.estimator.mean_heads(),
             forecast,
             self.sampling_time,
-        )
-        .map_err(|e| e.to_string());
-        let model = model
-            .as_mut()
-            .map(|m| m as &mut dyn PredictionModel)
-            .map_err(|e| e.clone());
-        // the sound start while the texture is being selected
-        let start_up = self.estimator.selecting().then_some(policy::StartUp {
-            settled: false,
-            measured: self.last_reading,
-        });
-        let step = policy::step(&mut self.mpc, model, start_up);
-        let (setpoint, solution) = (step.rate, step.solution);
-        Decision { setpoint, solution }
+            self.last_reading,
+        );
+        Decision {
+            setpoint: step.rate,
+            solution: step.solution,
+        }
     }
 
     /// Records the last step: the forcing it ran under (applied irrigation,

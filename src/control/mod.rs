@@ -15,7 +15,7 @@ pub use closed_loop::{
     run_closed_loop, run_observed_loop,
 };
 pub use controller::{Controller, Decision, reading_filter, relative_noise_sd};
-pub use estimated::EstimatedRichards;
+pub use estimated::{EstimateView, EstimatedRichards, step_on_estimate};
 pub use model::{LinearModel, ModelError, PredictionModel, RichardsModel, SurrogateModel};
 pub use mpc::{MpcSettings, Solution, SolveStatus, ZoneMpc, objective};
 pub use zone::ZoneSettings;

@@ -8,8 +8,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use chrono::{DateTime, TimeDelta, Timelike, Utc};
 
+pub use crate::control::EstimateView;
 use crate::control::{
-    PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc, policy,
+    PredictionModel, RichardsModel, SolveStatus, SurrogateModel, ZoneMpc, policy, step_on_estimate,
 };
 use crate::sim::{SCENARIO_STEP, scenario_series, scenario_weather};
 use crate::soil::{Field as Plant, FieldSettings, Forcing, VanGenuchten};
@@ -43,21 +44,6 @@ pub struct CycleInputs {
     pub estimate: Option<EstimateView>,
     /// Degraded flags raised while loading (e.g. simulation-failed).
     pub degraded: Vec<String>,
-}
-
-/// What a cycle uses of the state estimate: the mean heads (top first) and
-/// the estimated soil of a column `depth` deep.
-#[derive(Debug, Clone)]
-pub struct EstimateView {
-    pub heads: Vec<f64>,
-    pub soil: VanGenuchten,
-    pub depth: f64,
-    /// Standard deviation of the estimated θ in the model's output cell
-    /// (the zone's back-off, [`policy::backed_off`]).
-    pub output_sd: f64,
-    /// Whether the "unknown" prior is still selecting the texture (the
-    /// Richards model is not settled: [`policy::StartUp`]).
-    pub selecting: bool,
 }
 
 impl CycleInputs {
@@ -145,7 +131,10 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
         .as_ref()
         .filter(|_| spec.model == ModelKind::Richards);
     let mut settings = spec.mpc_settings_with(richards_estimate.map(|e| &e.soil));
+    let asked_zone = settings.zone;
     // planning on an estimate: the lower bound backed off by its uncertainty
+    // (step_on_estimate backs off again from `asked_zone`; this is the zone
+    // a cycle with no measurement publishes)
     if let Some(e) = richards_estimate {
         settings.zone = policy::backed_off(settings.zone, e.output_sd);
     }
@@ -195,34 +184,23 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
     let mut richards: Option<RichardsModel> = None;
     match (current, spec.model) {
         (None, _) => {}
+        // on an estimate: step_on_estimate below builds the model
+        (Some(_), ModelKind::Richards) if richards_estimate.is_some() => {}
         (Some(theta), ModelKind::Richards) => {
-            // the controller sees what a real field gives: it starts from
-            // the state estimate with the estimated soil, or (no estimate
-            // yet) from the column in equilibrium with the measured θ in the
-            // declared soil; never from a simulated plant's true state
-            let model = match &inputs.estimate {
-                Some(e) => RichardsModel::from_state(
-                    e.soil,
-                    spec.crop(),
-                    e.depth,
-                    e.heads.clone(),
-                    &weather,
-                    period,
-                )
-                .map_err(|e| e.to_string()),
-                None => {
-                    let soil = spec.soil.nominal().unwrap_or(VanGenuchten::SANDY_LOAM);
-                    let head = equilibrium_head(&soil, theta);
-                    Plant::new(FieldSettings {
-                        soil,
-                        crop: spec.crop(),
-                        initial_head: head,
-                        sampling_time: period,
-                        ..FieldSettings::default()
-                    })
-                    .map(|plant| RichardsModel::new(&plant, &weather))
-                }
-            };
+            // the controller sees what a real field gives: with no estimate
+            // yet it starts from the column in equilibrium with the measured
+            // θ in the declared soil; never from a simulated plant's true
+            // state
+            let soil = spec.soil.nominal().unwrap_or(VanGenuchten::SANDY_LOAM);
+            let head = equilibrium_head(&soil, theta);
+            let model = Plant::new(FieldSettings {
+                soil,
+                crop: spec.crop(),
+                initial_head: head,
+                sampling_time: period,
+                ..FieldSettings::default()
+            })
+            .map(|plant| RichardsModel::new(&plant, &weather));
             match model {
                 Ok(model) => richards = Some(model),
                 Err(e) => tracing::warn!(field = field.id, error = %e, "no Richards model"),
@@ -260,33 +238,41 @@ pub fn decide(inputs: &CycleInputs, models: &Models, cancel: &Arc<AtomicBool>) -
             one_step = Some(model);
         }
     }
-    let model = cycle_model(&mut richards, &mut one_step).ok_or_else(|| {
-        if current.is_none() {
-            "no measurement yet: no irrigation".to_string()
-        } else {
-            "no prediction model: no irrigation".to_string()
-        }
-    });
-    // the sound start: a surrogate until its window is full, the Richards
-    // model while its estimate is still selecting the texture
-    let start_up = match (spec.model, &inputs.estimate) {
-        (ModelKind::Richards, Some(e)) if e.selecting => Some(policy::StartUp {
-            settled: false,
-            measured: fresh.map(|m| m.theta),
-        }),
-        (ModelKind::Richards, _) => None,
-        _ => Some(policy::StartUp::window(
-            measured_samples,
-            WINDOW,
-            fresh.map(|m| m.theta),
-        )),
-    };
     let policy::Step {
         rate,
         plan,
         solution,
         ..
-    } = policy::step(&mut mpc, model, start_up);
+    } = match (current, richards_estimate) {
+        // the Richards model on the estimate, as the in-process controller
+        // plans (the sound start while the texture is being selected)
+        (Some(_), Some(e)) => {
+            let (step, model) = step_on_estimate(
+                &mut mpc,
+                asked_zone,
+                e,
+                spec.crop(),
+                &weather,
+                period,
+                fresh.map(|m| m.theta),
+            );
+            richards = model;
+            step
+        }
+        _ => {
+            let model = cycle_model(&mut richards, &mut one_step).ok_or_else(|| {
+                if current.is_none() {
+                    "no measurement yet: no irrigation".to_string()
+                } else {
+                    "no prediction model: no irrigation".to_string()
+                }
+            });
+            // the sound start of a surrogate: until its window is full
+            let start_up = (spec.model != ModelKind::Richards)
+                .then(|| policy::StartUp::window(measured_samples, WINDOW, fresh.map(|m| m.theta)));
+            policy::step(&mut mpc, model, start_up)
+        }
+    };
     // θ with no irrigation at all, for the explanation
     let dry = cycle_model(&mut richards, &mut one_step)
         .map_or_else(Vec::new, |model| without_irrigation(model, n, cancel));
@@ -1097,6 +1083,69 @@ mod tests {
             for z in &sp.zone {
                 assert!((z[0] - low).abs() < 1e-12, "{model:?} sd {sd}: {z:?}");
                 assert_eq!(z[1], 0.23, "{model:?} sd {sd}");
+            }
+        }
+    }
+
+    /// The daemon's cycle and the in-process estimated controller (E8's and
+    /// `rootzone closed-loop`'s) plan by one function, `step_on_estimate`:
+    /// on the same estimate, reading and forecast they publish the same
+    /// rate, plan, prediction and zone, bit for bit.
+    #[test]
+    fn the_daemon_and_the_in_process_controller_plan_alike_on_one_estimate() {
+        use crate::control::EstimatedRichards;
+        use crate::estimate::{Estimator, EstimatorSettings, InitialGuess, Prior, Sensor};
+        use crate::soil::{Crop, Texture};
+        let m = models();
+        for (prior, theta) in [
+            (Prior::Texture(Texture::SandyLoam), 0.165),
+            (Prior::Texture(Texture::Loam), 0.2),
+            // still selecting the texture: the sound start holds a wet field
+            (Prior::Unknown, 0.25),
+        ] {
+            let estimator = Estimator::new(
+                prior,
+                Crop::default(),
+                vec![Sensor {
+                    id: "default".into(),
+                    depth: 0.125,
+                    noise: 0.004,
+                }],
+                InitialGuess::Reading(theta),
+                EstimatorSettings::default(),
+            )
+            .unwrap();
+            let mut i = inputs(ModelKind::Richards);
+            i.measurements = vec![reading("2026-06-02T11:55:00Z", theta)];
+            let forecast = Forecast {
+                issued_at: i.now,
+                start: i.now,
+                step_s: 7200.0,
+                et0_mm: (0..24).map(|k| 0.2 + 0.05 * (k % 6) as f64).collect(),
+                precip_mm: (0..24).map(|k| if k == 9 { 4.0 } else { 0.0 }).collect(),
+            };
+            i.forecast = Some(forecast.clone());
+            let view = EstimateView::of(&estimator);
+            i.estimate = Some(view.clone());
+            let daemon = decide(&i, &m, &cancel());
+
+            let settings = i.field.spec.mpc_settings_with(Some(&view.soil));
+            let mut in_process =
+                EstimatedRichards::new(settings, estimator, i.field.spec.crop(), 7200.0)
+                    .with_reading(theta);
+            let (weather, defaulted) = horizon_weather(Some(&forecast), 7200.0, i.now, 20);
+            assert!(!defaulted);
+            let own = in_process.decide(&weather);
+            let what = format!("{} at θ {theta}", prior.describe());
+            assert_eq!(daemon.rate, own.setpoint, "{what}");
+            assert_eq!(daemon.status, "converged", "{what}");
+            assert_eq!(daemon.predicted_theta, own.solution.predicted, "{what}");
+            let zone: Vec<[f64; 2]> = own.solution.zone.iter().map(|&(l, u)| [l, u]).collect();
+            assert_eq!(daemon.zone, zone, "{what}");
+            if prior == Prior::Unknown {
+                assert_eq!(daemon.rate, 0.0, "{what}: held while selecting");
+            } else if theta < 0.18 {
+                assert!(daemon.rate > 0.0, "{what}: below the zone, irrigated");
             }
         }
     }

@@ -576,17 +576,7 @@ impl Engine {
             })),
         })
         .map_err(StoreError::from)?;
-        Ok((
-            Some(EstimateView {
-                heads: est.mean_heads(),
-                soil: est.soil(),
-                depth: est.settings().depth,
-                output_sd: est.output_sd(),
-                selecting: est.selecting(),
-            }),
-            done.flags,
-            Some(body),
-        ))
+        Ok((Some(EstimateView::of(&est)), done.flags, Some(body)))
     }
 
     /// The field's current state estimate as its latest cycle left it (the
@@ -727,13 +717,7 @@ impl Engine {
             return None;
         }
         let est = Estimator::restore(stored.snapshot).ok()?;
-        Some(EstimateView {
-            heads: est.mean_heads(),
-            soil: est.soil(),
-            depth: est.settings().depth,
-            output_sd: est.output_sd(),
-            selecting: est.selecting(),
-        })
+        Some(EstimateView::of(&est))
     }
 
     /// Brings a field's state estimate up to `now` after a cycle at `now`
