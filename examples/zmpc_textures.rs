@@ -56,6 +56,10 @@ impl PredictionModel for Counted {
         self.inner.set_interrupt(interrupt);
     }
 
+    fn monotone_in_supply(&self) -> bool {
+        self.inner.monotone_in_supply()
+    }
+
     fn set_work_budget(&mut self, budget: Option<usize>) {
         self.inner.set_work_budget(budget);
     }

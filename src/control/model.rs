@@ -48,6 +48,14 @@ pub trait PredictionModel: Send {
     fn out_of_work(&self) -> bool {
         false
     }
+
+    /// Whether more irrigation never lowers a predicted θ: for plans
+    /// u ≤ v (every move), ŷ(u) ≤ ŷ(v) at every step. True of the
+    /// Richards model (water only adds: the comparison principle of
+    /// Richards' equation); the networks promise nothing.
+    fn monotone_in_supply(&self) -> bool {
+        false
+    }
 }
 
 /// A surrogate ([`Predictor`]) with its window of applied inputs and measured
@@ -449,6 +457,10 @@ impl PredictionModel for RichardsModel {
 
     /// Counted in Newton iterations (each one tridiagonal solve), the
     /// integrator's unit of work.
+    fn monotone_in_supply(&self) -> bool {
+        true
+    }
+
     fn set_work_budget(&mut self, budget: Option<usize>) {
         self.work_budget = budget;
         if budget.is_some() {

@@ -176,31 +176,46 @@ const START_LEVELS: [f64; 7] = [0.0, 0.002, 0.01, 0.05, 0.2, 0.5, 1.0];
 /// `j0` (from `objective_of`, `None` where the model failed), best first:
 /// those of the `runs` best that a solve whose best run so far has objective
 /// `cutoff` would still run (it stops at the first `j0 ≥ cutoff`), maybe
-/// followed by some it would not. A level whose input cost alone ranks it
-/// behind `runs` plans already evaluated, or reaches `cutoff`, is not
-/// evaluated, nor is any above it (their input cost is larger).
+/// followed by some it would not. A level whose objective's lower bound
+/// ranks it behind `runs` plans already evaluated, or reaches `cutoff`, is
+/// not evaluated, nor is any above it (their bound is larger).
+///
+/// The bound is the level's input cost, plus, for a model `monotone` in
+/// the supply, the wet-side part of the objective of the highest level
+/// evaluated so far: a higher constant plan predicts θ at least as high
+/// at every step, so it is at least as far above the zone. After rain the
+/// zone's top is exceeded whatever the plan, and the large levels, which
+/// pond a fine soil and are the dearest to integrate, are then not
+/// predicted.
 fn start_candidates(
     s: &MpcSettings,
     warm: &[f64],
     runs: usize,
     cutoff: f64,
-    mut objective_of: impl FnMut(&[f64]) -> Option<f64>,
+    monotone: bool,
+    mut objective_of: impl FnMut(&[f64]) -> Option<(f64, f64)>,
 ) -> Vec<(f64, Vec<f64>)> {
     let mut candidates: Vec<(f64, Vec<f64>)> = Vec::new();
+    // the wet-side part of the last evaluated level's objective
+    let mut wet_floor = 0.0;
     for level in START_LEVELS {
         let plan = vec![level; warm.len()];
         if plan == warm {
             continue;
         }
-        // the objective with every prediction inside the zone: a lower
-        // bound of the true one, also in floating point (each term adds a
-        // non-negative Q·d²), rising with the level
-        let floor = input_cost(s, &plan);
+        // the objective with every prediction inside the zone, or no
+        // nearer its top than a lower level's: a lower bound of the true
+        // one, also in floating point (each term adds a non-negative Q·d²),
+        // rising with the level
+        let floor = input_cost(s, &plan) + wet_floor;
         let ranked_out = runs == 0 || candidates.get(runs - 1).is_some_and(|c| floor > c.0);
         if ranked_out || floor >= cutoff {
             break;
         }
-        if let Some(j0) = objective_of(&plan) {
+        if let Some((j0, wet)) = objective_of(&plan) {
+            if monotone {
+                wet_floor = wet;
+            }
             // kept in order (ties in level order, as a stable sort leaves them)
             let at = candidates.partition_point(|c| c.0.total_cmp(&j0).is_le());
             candidates.insert(at, (j0, plan));
@@ -208,6 +223,23 @@ fn start_candidates(
     }
     candidates.truncate(runs);
     candidates
+}
+
+/// The wet-side part of [`objective`]: Q·Σ (θ̂ above the zone's top)², in
+/// effective saturation, the terms the objective adds for those steps at
+/// least.
+fn wet_side(settings: &MpcSettings, y: &[f64]) -> f64 {
+    let n = y.len();
+    let span = settings.theta_s - settings.theta_r;
+    let se = |theta: f64| (theta - settings.theta_r) / span;
+    y.iter()
+        .enumerate()
+        .map(|(k, &yk)| {
+            let up = settings.zone.bounds(k + 1, n).1;
+            let d = (se(yk) - se(up)).max(0.0);
+            settings.q * d * d
+        })
+        .fold(0.0, |j, t| j + t)
 }
 
 /// The input part R·Σū² of [`objective`], summed in its order.
@@ -441,12 +473,13 @@ impl ZoneMpc {
             f64::INFINITY
         };
         let mut y = vec![0.0; n];
-        let candidates = start_candidates(&s, &warm, runs, cutoff, |plan| {
+        let monotone = model.monotone_in_supply();
+        let candidates = start_candidates(&s, &warm, runs, cutoff, monotone, |plan| {
             let rates: Vec<f64> = plan.iter().map(|v| v * s.u_max).collect();
             model
                 .predict(&rates, &mut y)
                 .is_ok()
-                .then(|| objective(&s, &y, plan))
+                .then(|| (objective(&s, &y, plan), wet_side(&s, &y)))
         });
         for (j0, other) in candidates {
             if self.spent_budget(model).is_some() {
@@ -814,22 +847,33 @@ mod tests {
     fn skipping_constant_plans_by_their_input_cost_runs_the_same_starts() {
         let s = MpcSettings::default();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(14);
-        let mut skipped = 0;
+        let (mut skipped, mut skipped_monotone) = (0, 0);
+        let draw = |rng: &mut rand_chacha::ChaCha8Rng| match rng.random_range(0..10) {
+            0..=3 => 0.0,
+            _ => 10f64.powf(rng.random_range(-4.0..4.0)),
+        };
         for case in 0..2000 {
             let n = s.horizon;
-            // the zone part of each plan's objective: often 0, sometimes
-            // large, so that every level can rank anywhere; some fail
-            let zone_part: Vec<Option<f64>> = START_LEVELS
+            // the zone part of each plan's objective, split into its dry and
+            // its wet side: often 0, sometimes large, so that every level can
+            // rank anywhere; some fail. The wet side does not fall as the
+            // level rises (a model monotone in the supply)
+            let mut wet = 0.0;
+            let zone_part: Vec<Option<(f64, f64)>> = START_LEVELS
                 .iter()
-                .map(|_| match rng.random_range(0..10) {
-                    0 => None,
-                    1..=3 => Some(0.0),
-                    _ => Some(10f64.powf(rng.random_range(-4.0..4.0))),
+                .map(|_| {
+                    wet += if rng.random_range(0..3) == 0 {
+                        draw(&mut rng)
+                    } else {
+                        0.0
+                    };
+                    let dry = draw(&mut rng);
+                    (rng.random_range(0..10) > 0).then_some((dry, wet))
                 })
                 .collect();
             let objective_of = |plan: &[f64]| {
                 let k = START_LEVELS.iter().position(|&l| l == plan[0]).unwrap();
-                zone_part[k].map(|z| z + input_cost(&s, plan))
+                zone_part[k].map(|(dry, wet)| (dry + wet + input_cost(&s, plan), wet))
             };
             let warm = if case % 3 == 0 {
                 vec![START_LEVELS[rng.random_range(0..START_LEVELS.len())]; n]
@@ -841,19 +885,33 @@ mod tests {
                 0 => f64::INFINITY,
                 _ => 10f64.powf(rng.random_range(-4.0..4.0)),
             };
-            let mut evaluated = 0;
-            let got = start_candidates(&s, &warm, runs, cutoff, |p| {
-                evaluated += 1;
-                objective_of(p)
-            });
-            let want = exhaustive(&warm, runs, cutoff, &mut |p| objective_of(p));
-            let run: Vec<_> = got.into_iter().take_while(|c| c.0 < cutoff).collect();
-            assert_eq!(run, want, "case {case}: runs {runs}, cutoff {cutoff}");
-            skipped += START_LEVELS.len() - evaluated;
+            let want = exhaustive(&warm, runs, cutoff, &mut |p| objective_of(p).map(|j| j.0));
+            for monotone in [false, true] {
+                let mut evaluated = 0;
+                let got = start_candidates(&s, &warm, runs, cutoff, monotone, |p| {
+                    evaluated += 1;
+                    objective_of(p)
+                });
+                let run: Vec<_> = got.into_iter().take_while(|c| c.0 < cutoff).collect();
+                assert_eq!(
+                    run, want,
+                    "case {case}: runs {runs}, cutoff {cutoff}, {monotone}"
+                );
+                if monotone {
+                    skipped_monotone += START_LEVELS.len() - evaluated;
+                } else {
+                    skipped += START_LEVELS.len() - evaluated;
+                }
+            }
         }
         // the bound does skip work: the highest levels cost R·N·ū² = 500 and
-        // 2000, above most cutoffs and most zone parts
+        // 2000, above most cutoffs and most zone parts; a monotone model's
+        // wet side skips more
         assert!(skipped > 2000, "only {skipped} evaluations skipped");
+        assert!(
+            skipped_monotone > skipped + 300,
+            "{skipped_monotone} skipped with the wet side, {skipped} without"
+        );
     }
 
     #[test]
