@@ -8,6 +8,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::estimate::cell_of;
 use crate::service::wire::{FieldSpec, Forecast, Measurement, Scenario, SimulationSpec};
 use crate::soil::{ColumnState, Field as Plant, FieldSettings, Forcing, IntegrationError};
 use crate::weather::{DRY_SCENARIO, RAIN_SCENARIO, WeatherSeries, WeatherStep};
@@ -86,7 +87,7 @@ pub fn scenario_forecast(
 }
 
 /// The reading of sensor `index` of a simulated plant at `depth` m: θ of
-/// the cell holding that depth ([`cell_at`]) with relative noise U(−m, m)
+/// the cell holding that depth ([`cell_of`]) with relative noise U(−m, m)
 /// of level `noise`, drawn from a stream of its own fixed by (seed, index,
 /// the plant's step), so a resumed plant reads the same and the daemon, the
 /// field simulator and the closed loop read the same plant alike. (The
@@ -102,12 +103,6 @@ pub fn sensor_reading(
     reading_of(plant, &plant.water_contents(), depth, index, noise, seed)
 }
 
-/// The cell of a column of cells of thickness `dz` (`cells` of them) that
-/// holds `depth`.
-pub fn cell_at(depth: f64, dz: f64, cells: usize) -> usize {
-    ((depth / dz) as usize).min(cells - 1)
-}
-
 fn reading_of(
     plant: &Plant,
     theta: &[f64],
@@ -116,7 +111,7 @@ fn reading_of(
     noise: f64,
     seed: u64,
 ) -> (f64, f64) {
-    let cell = cell_at(depth, plant.column().cell_thickness(), theta.len());
+    let cell = cell_of(depth, plant.column().depth(), theta.len());
     let mut rng = ChaCha8Rng::seed_from_u64(
         seed ^ (0x9e37_79b9_7f4a_7c15_u64.wrapping_mul(index as u64 + 1))
             ^ (plant.steps() as u64).rotate_left(32),
@@ -165,14 +160,10 @@ impl SensedPlant {
                 column.depth()
             ));
         }
-        let (dz, cells, own_cell) = (
-            column.cell_thickness(),
-            column.cells(),
-            column.sensor_cell(),
-        );
+        let (depth, cells, own_cell) = (column.depth(), column.cells(), column.sensor_cell());
         let own = depths
             .iter()
-            .position(|&d| cell_at(d, dz, cells) == own_cell);
+            .position(|&d| cell_of(d, depth, cells) == own_cell);
         Ok(SensedPlant { plant, depths, own })
     }
 
@@ -230,7 +221,7 @@ pub struct PlantState {
     pub steps: usize,
     pub heads: Vec<f64>,
     pub amounts: [f64; 4],
-    /// True θ at the primary sensor.
+    /// True θ at the rooting depth (the cell holding it).
     pub theta: f64,
     /// True θ of every cell, top first (cells of equal thickness).
     #[serde(default)]
