@@ -487,11 +487,11 @@ mod tests {
     use crate::control::MpcSettings;
     use crate::weather::DRY_SCENARIO;
 
-    /// The closed loop reads a plant's sensors other than its own with the
-    /// simulated plants' sensor model (`sim::sensor_reading`, which the
-    /// daemon and the field simulator use): the same plant at the same step
-    /// reads the same, within the noise level of the truth; the plant's own
-    /// sensor reads as the plant does.
+    /// The closed loop reads a plant's sensors as a simulated field does
+    /// (`sim::SensedPlant`, which the daemon and the field simulator use):
+    /// the same plant at the same step reads the same, each other sensor
+    /// within the noise level of its cell's truth; the plant's own sensor
+    /// reads as the plant does.
     #[test]
     fn the_closed_loop_reads_other_sensors_as_a_simulated_field_does() {
         let (noise, seed) = (0.05, 11);
@@ -515,10 +515,16 @@ mod tests {
             LoopController::Oracle(Controller::oracle(MpcSettings::default(), 7200.0))
         })
         .unwrap();
+        let simulated = SensedPlant::new(field, depths.to_vec())
+            .unwrap()
+            .read_now()
+            .readings;
         let mut plant = crate::soil::Field::new(field).unwrap();
+        let dz = plant.column().cell_thickness();
         for k in [0, 2] {
-            let (measured, truth) = crate::sim::sensor_reading(&plant, depths[k], k, noise, seed);
+            let (measured, truth) = simulated[k];
             assert_eq!(first[k], measured, "sensor {k}");
+            assert_eq!(truth, plant.water_contents()[(depths[k] / dz) as usize]);
             assert!(measured != truth && (measured / truth - 1.0).abs() <= noise);
         }
         assert_eq!(first[1], plant.measure());

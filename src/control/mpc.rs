@@ -155,17 +155,28 @@ pub struct Solution {
 
 /// J for predictions `y` and scaled inputs `ubar` (see the module docs).
 pub fn objective(settings: &MpcSettings, y: &[f64], ubar: &[f64]) -> f64 {
-    let n = y.len();
-    let span = settings.theta_s - settings.theta_r;
-    let se = |theta: f64| (theta - settings.theta_r) / span;
     let mut j = 0.0;
-    for (k, (&yk, &uk)) in y.iter().zip(ubar).enumerate() {
-        let (low, up) = settings.zone.bounds(k + 1, n);
-        let s = se(yk);
-        let d = (se(low) - s).max(0.0) + (s - se(up)).max(0.0);
+    for ((below, above), &uk) in zone_excursions(settings, y).zip(ubar) {
+        let d = below + above;
         j += settings.q * d * d + settings.r * uk * uk;
     }
     j
+}
+
+/// How far each prediction of `y` lies below and above its step's zone,
+/// in effective saturation (each 0 on its own side of the zone).
+fn zone_excursions<'a>(
+    settings: &'a MpcSettings,
+    y: &'a [f64],
+) -> impl Iterator<Item = (f64, f64)> + 'a {
+    let n = y.len();
+    let span = settings.theta_s - settings.theta_r;
+    let se = move |theta: f64| (theta - settings.theta_r) / span;
+    y.iter().enumerate().map(move |(k, &yk)| {
+        let (low, up) = settings.zone.bounds(k + 1, n);
+        let s = se(yk);
+        ((se(low) - s).max(0.0), (s - se(up)).max(0.0))
+    })
 }
 
 /// The constant plans, as fractions of u_max, from which [`ZoneMpc::solve`]
@@ -229,16 +240,8 @@ fn start_candidates(
 /// effective saturation, the terms the objective adds for those steps at
 /// least.
 fn wet_side(settings: &MpcSettings, y: &[f64]) -> f64 {
-    let n = y.len();
-    let span = settings.theta_s - settings.theta_r;
-    let se = |theta: f64| (theta - settings.theta_r) / span;
-    y.iter()
-        .enumerate()
-        .map(|(k, &yk)| {
-            let up = settings.zone.bounds(k + 1, n).1;
-            let d = (se(yk) - se(up)).max(0.0);
-            settings.q * d * d
-        })
+    zone_excursions(settings, y)
+        .map(|(_, above)| settings.q * above * above)
         .fold(0.0, |j, t| j + t)
 }
 

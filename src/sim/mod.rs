@@ -86,23 +86,14 @@ pub fn scenario_forecast(
     }
 }
 
-/// The reading of sensor `index` of a simulated plant at `depth` m: θ of
-/// the cell holding that depth ([`cell_of`]) with relative noise U(−m, m)
-/// of level `noise`, drawn from a stream of its own fixed by (seed, index,
-/// the plant's step), so a resumed plant reads the same and the daemon, the
-/// field simulator and the closed loop read the same plant alike. (The
-/// plant's own sensor, [`SensedPlant`]'s `own`, reads the plant's own
-/// measurement stream instead.) Returns (measured θ in [0, 1], true θ).
-pub fn sensor_reading(
-    plant: &Plant,
-    depth: f64,
-    index: usize,
-    noise: f64,
-    seed: u64,
-) -> (f64, f64) {
-    reading_of(plant, &plant.water_contents(), depth, index, noise, seed)
-}
-
+/// The reading of sensor `index` of a simulated plant at `depth` m, `theta`
+/// being the plant's θ profile: θ of the cell holding that depth
+/// ([`cell_of`]) with relative noise U(−m, m) of level `noise`, drawn from a
+/// stream of its own fixed by (seed, index, the plant's step), so a resumed
+/// plant reads the same and the daemon, the field simulator and the closed
+/// loop read the same plant alike. (The plant's own sensor,
+/// [`SensedPlant`]'s `own`, reads the plant's own measurement stream
+/// instead.) Returns (measured θ in [0, 1], true θ).
 fn reading_of(
     plant: &Plant,
     theta: &[f64],
@@ -127,8 +118,8 @@ fn reading_of(
 ///
 /// The first sensor in the plant's own sensor cell (the rooting depth's)
 /// reads the plant's own measurement stream ([`Plant::measure`]); every
-/// other sensor reads its cell by [`sensor_reading`], its place in the
-/// list being its index.
+/// other sensor reads its cell with a stream of its own (`reading_of`),
+/// its place in the list being its index.
 pub struct SensedPlant {
     plant: Plant,
     depths: Vec<f64>,
@@ -461,7 +452,7 @@ mod tests {
             // the cells differ, so a sensor reading another's cell would show
             assert!((theta[(0.3 / dz) as usize] - theta[(0.125 / dz) as usize]).abs() > 1e-3);
         }
-        // no sensor in the rooting cell: every sensor reads by sensor_reading
+        // no sensor in the rooting cell: every sensor reads by reading_of
         let only_deep = SensedPlant::new(settings(), vec![0.4]).unwrap();
         assert_eq!(only_deep.own(), None);
         for bad in [vec![], vec![0.6], vec![f64::NAN], vec![-0.1]] {
