@@ -171,3 +171,96 @@ fn rates_conserve_water() {
         assert!((r[n] + r[n + 3] - supply).abs() <= 1e-18 + 1e-14 * supply);
     }
 }
+
+/// The flux through the face between a saturated cell (h = 0) and the cell
+/// below it at `below`, relative to Ks, from the column's own rates: the
+/// last cell's rate is (q₂₅ − q₂₆)/dz with q₂₆ = K(h₂₅) the drainage.
+fn face_flux_below_saturation(column: &Column, below: f64) -> f64 {
+    let n = column.cells();
+    let mut h = vec![0.0; n];
+    h[n - 1] = below;
+    let forcing = Forcing {
+        irrigation: 0.0,
+        reference_et: 0.0,
+        precipitation: 0.0,
+    };
+    let r = rates(column, &h, &forcing);
+    (r[n - 1] * column.cell_thickness() + r[n + 1]) / column.soil().saturated_conductivity
+}
+
+/// Heads of the lower cell from −1e2 m to −1e-18 m, 200 per decade, then
+/// saturated heads up to dz: the face flux along them.
+fn face_flux_curve(column: &Column) -> Vec<(f64, f64)> {
+    let below = (0..4000).map(|k| -(10f64.powf(2.0 - k as f64 * 0.005)));
+    let above = (0..=100).map(|k| k as f64 * 0.01 * column.cell_thickness());
+    below
+        .chain(above)
+        .map(|h| (h, face_flux_below_saturation(column, h)))
+        .collect()
+}
+
+/// Why the finest textures are slow in rain (ARCHITECTURE.md, "Ponding on
+/// the finer textures"): MODEL.md's face flux K̄·(Δh/dz + 1) with the
+/// arithmetic mean K̄ is not monotone in the lower cell's head when n is
+/// near 1. Below a saturated cell it falls from Ks at h = 0⁻ (K's cusp) to
+/// a minimum before the gradient makes it rise, so a flux between that
+/// minimum and Ks passes the face at three heads of the lower cell: the
+/// stage equations of an implicit step then have several solutions per
+/// cell. The minima (q/Ks) are those of an independent evaluation of the
+/// same formulas (a Python scan over the same heads): clay 0.6428, silty
+/// clay 0.6537, sandy clay 0.8162, silty clay loam 0.8590, clay loam
+/// 0.9116, loam 0.9930; sandy loam and the coarser textures have none
+/// above 1 − 1e-6.
+#[test]
+fn below_a_saturated_cell_one_flux_passes_at_three_heads_when_n_is_near_one() {
+    use rootzone::soil::Texture;
+    let lowest = |texture: Texture| {
+        let column = Column::new(texture.parameters(), Crop::default(), 0.5, 26).unwrap();
+        face_flux_curve(&column)
+            .into_iter()
+            .filter(|&(h, _)| h < 0.0)
+            .map(|(_, q)| q)
+            .fold(f64::INFINITY, f64::min)
+    };
+    for (texture, expected) in [
+        (Texture::Clay, 0.6428),
+        (Texture::SiltyClay, 0.6537),
+        (Texture::SandyClay, 0.8162),
+        (Texture::SiltyClayLoam, 0.8590),
+        (Texture::ClayLoam, 0.9116),
+        (Texture::Loam, 0.9930),
+    ] {
+        let q = lowest(texture);
+        assert!(
+            (q - expected).abs() < 1e-3,
+            "{texture}: the face flux's minimum is {q:.4} Ks, expected {expected}"
+        );
+    }
+    for texture in [Texture::Sand, Texture::LoamySand, Texture::SandyLoam] {
+        let q = lowest(texture);
+        assert!(q > 1.0 - 1e-6, "{texture}: minimum {q} Ks");
+    }
+    // The case that costs the most (tests/textures.rs): clay under 0.935 Ks.
+    // Three heads carry it; above saturation the one of K = Ks,
+    // h = (1 − 0.935)·dz. Sandy loam carries it at that head only.
+    let crossings = |texture: Texture, flux: f64| {
+        let column = Column::new(texture.parameters(), Crop::default(), 0.5, 26).unwrap();
+        let curve = face_flux_curve(&column);
+        let heads: Vec<f64> = curve
+            .windows(2)
+            .filter(|w| (w[0].1 - flux) * (w[1].1 - flux) < 0.0)
+            .map(|w| 0.5 * (w[0].0 + w[1].0))
+            .collect();
+        (heads, column.cell_thickness())
+    };
+    let (clay, dz) = crossings(Texture::Clay, 0.935);
+    assert_eq!(clay.len(), 3, "clay: {clay:?}");
+    assert!(
+        clay[0] < -1e-4 && clay[1] < 0.0 && clay[1] > -1e-6,
+        "{clay:?}"
+    );
+    assert!((clay[2] - 0.065 * dz).abs() < 0.01 * dz, "{clay:?}");
+    let (sandy_loam, dz) = crossings(Texture::SandyLoam, 0.935);
+    assert_eq!(sandy_loam.len(), 1, "sandy loam: {sandy_loam:?}");
+    assert!((sandy_loam[0] - 0.065 * dz).abs() < 0.01 * dz);
+}
