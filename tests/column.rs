@@ -209,7 +209,7 @@ fn face_flux_curve(column: &Column) -> Vec<(f64, f64)> {
 /// cell. The minima (q/Ks) are those of an independent evaluation of the
 /// same formulas (a Python scan over the same heads): clay 0.6428, silty
 /// clay 0.6537, sandy clay 0.8162, silty clay loam 0.8590, clay loam
-/// 0.9116, loam 0.9930; sandy loam and the coarser textures have none
+/// 0.9116, loam 0.9930; for sandy loam and the coarser textures it stays
 /// above 1 − 1e-6.
 #[test]
 fn below_a_saturated_cell_one_flux_passes_at_three_heads_when_n_is_near_one() {
