@@ -1187,7 +1187,6 @@ impl Integrator {
                 return false;
             }
             w.base.copy_from_slice(&w.trial);
-            w.base_residual.copy_from_slice(&w.residual);
             for i in 0..n {
                 w.trial[i] = coordinates.step(w.base[i], w.update[i]);
             }
