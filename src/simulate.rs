@@ -211,7 +211,9 @@ pub fn write_csv(rows: &[SimulatedStep], out: &mut impl Write) -> std::io::Resul
 }
 
 /// The whole command: read, validate, simulate, then write atomically (a temporary
-/// file renamed into place), so a failure leaves no partial output file.
+/// file renamed into place), so a failure leaves no partial output file. An
+/// output path that exists and is not a regular file (`/dev/null`, a named
+/// pipe, `/dev/stdout`) is written in place: a rename would replace it.
 pub fn run(options: &SimulateOptions) -> Result<(), SimulateError> {
     let weather = WeatherSeries::from_file(&options.weather)?;
     let irrigation = read_irrigation(&options.irrigation)?;
@@ -229,12 +231,24 @@ pub fn run(options: &SimulateOptions) -> Result<(), SimulateError> {
                 path: path.display().to_string(),
                 source,
             };
+            if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+                let file = std::fs::OpenOptions::new()
+                    .write(true)
+                    .open(path)
+                    .map_err(output)?;
+                let mut out = std::io::BufWriter::new(file);
+                write_csv(&rows, &mut out).map_err(output)?;
+                return out.flush().map_err(output);
+            }
             let dir = path
                 .parent()
                 .filter(|p| !p.as_os_str().is_empty())
                 .unwrap_or(Path::new("."));
             let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(output)?;
-            write_csv(&rows, &mut std::io::BufWriter::new(tmp.as_file_mut())).map_err(output)?;
+            let mut out = std::io::BufWriter::new(tmp.as_file_mut());
+            write_csv(&rows, &mut out).map_err(output)?;
+            out.flush().map_err(output)?;
+            drop(out);
             tmp.persist(path).map_err(|e| output(e.error))?;
             Ok(())
         }

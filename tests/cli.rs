@@ -106,6 +106,44 @@ fn simulate_without_out_writes_to_stdout() {
     assert_eq!(text.lines().next().unwrap(), COLUMNS);
 }
 
+/// An output that is not a regular file (here a named pipe; `/dev/null` is
+/// the common case) is written in place. The atomic write renamed its
+/// temporary file over it, which replaced `/dev/null` with a regular file
+/// when run as root.
+#[test]
+fn simulate_writes_into_a_named_pipe_without_replacing_it() {
+    use std::os::unix::fs::FileTypeExt;
+    let dir = tempfile::tempdir().unwrap();
+    let irrigation = write(dir.path(), "irr.csv", &schedule(3, 0.0));
+    let fifo = dir.path().join("out.fifo");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let reader = {
+        let fifo = fifo.clone();
+        std::thread::spawn(move || std::fs::read_to_string(fifo).unwrap())
+    };
+    let result = rootzone(&[
+        "simulate",
+        "--weather",
+        &data("weather-dry.csv"),
+        "--irrigation",
+        &irrigation,
+        "--soil",
+        "loam",
+        "--out",
+        fifo.to_str().unwrap(),
+    ]);
+    assert!(result.status.success(), "{result:?}");
+    let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+    assert!(kind.is_fifo(), "the pipe was replaced: {kind:?}");
+    let text = reader.join().unwrap();
+    assert_eq!(text.lines().count(), 4);
+    assert_eq!(text.lines().next().unwrap(), COLUMNS);
+}
+
 /// A soil given by its parameters simulates exactly as the texture of the
 /// same parameters, and another soil gives another run.
 #[test]

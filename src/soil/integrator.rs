@@ -247,6 +247,16 @@ const ROBUST_STREAK: usize = 20;
 /// Cells with C below this multiple of Ss keep their heads in the projection
 /// of the last stage.
 const PROJECTION_CAPACITY: f64 = 100.0;
+/// The largest change of head [m] by which the projection puts what no cell
+/// can take into all cells alike. A stage's residuals sum to at most n times
+/// Newton's tolerance, so at the default tolerances that change is at most
+/// NEWTON_FRACTION·(1e-7 + 1e-5·θs)/Ss < 0.11 m for any θs ≤ 0.52: there the
+/// water balance is always exact.
+const UNIFORM_SHIFT: f64 = 0.15;
+/// When even that is too much, at most this many Newton iterations try to
+/// take the last stage's residual below Ss times this head [m] first.
+const POLISH_HEAD: f64 = 1e-3;
+const POLISH_ITERATIONS: usize = 4;
 /// Full Newton steps a stage solve may take although they do not reduce the
 /// residual (at most this many, and by at most [`WATCHDOG_GROWTH`]): near
 /// saturation the residual has kinks, at which a descent test on max|R| can
@@ -714,7 +724,7 @@ impl Integrator {
                     let tolerance = self.newton_tolerance();
                     self.work.base.copy_from_slice(&self.work.trial);
                     self.work.start.copy_from_slice(&self.work.trial);
-                    self.solve_stage(forcing, GAMMA * dt, tolerance)
+                    self.solve_stage(forcing, GAMMA * dt, tolerance, MAX_NEWTON_ITERATIONS)
                         || {
                             let w = &mut self.work;
                             w.trial.copy_from_slice(&w.start);
@@ -736,40 +746,7 @@ impl Integrator {
                 return Step::NewtonFailed;
             }
             if path == Path::Robust && stage + 1 == STAGES {
-                // Newton stops at a residual far below the error tolerance but
-                // not at round-off. The new stored water is what the stage
-                // equation gives for the rates at the solution, wⁿ⁺¹ = known +
-                // γΔt·F(H_s), so that Σ dz·wⁿ⁺¹ − Σ dz·wⁿ is exactly Δt·Σ b_j
-                // times the boundary and sink rates: the water balance closes
-                // to round-off. The heads follow by the inverse of w(h).
-                // A cell whose storage is mostly Ss (saturated or nearly) keeps
-                // its head: there R/Ss would be a pressure of centimetres. Its
-                // residual goes to the cell of largest capacity instead (to
-                // all cells alike if none has any), so that the sum is exact.
-                let w = &mut self.work;
-                let mut moved = 0.0;
-                let mut sink: Option<usize> = None;
-                for i in 0..n {
-                    let c = w.eval.states[i].capacity;
-                    if c > PROJECTION_CAPACITY * ss {
-                        if sink.is_none_or(|k| c > w.eval.states[k].capacity) {
-                            sink = Some(i);
-                        }
-                    } else {
-                        moved += w.residual[i];
-                    }
-                }
-                for i in 0..n {
-                    let c = w.eval.states[i].capacity;
-                    let target = w.known[i] + GAMMA * dt * w.eval.storage[i];
-                    let target = match sink {
-                        Some(k) if i == k => target - moved,
-                        Some(_) if c <= PROJECTION_CAPACITY * ss => continue,
-                        Some(_) => target,
-                        None => target + (w.residual[i] - moved / n as f64),
-                    };
-                    w.trial[i] = soil.pressure_head_from_storage(target);
-                }
+                self.project_last_stage(forcing, dt);
             }
             let w = &mut self.work;
             if path == Path::Robust && w.keep_jacobians {
@@ -837,6 +814,98 @@ impl Integrator {
             Step::Rejected {
                 error: if error.is_finite() { error } else { 1e6 },
             }
+        }
+    }
+
+    /// The robust path's last stage, solved to Newton's tolerance, made
+    /// exact in water. Newton stops at a residual far below the error
+    /// tolerance but not at round-off. The new stored water is what the stage
+    /// equation gives for the rates at the solution, wⁿ⁺¹ = known +
+    /// γΔt·F(H_s) = w(H_s) − R, so that Σ dz·wⁿ⁺¹ − Σ dz·wⁿ is exactly Δt·Σ b_j
+    /// times the boundary and sink rates: the water balance closes to
+    /// round-off. The heads follow by the inverse of w(h).
+    ///
+    /// Past θs that inverse is (w − θs)/Ss: a correction of 1e-6 would be a
+    /// metre of head. So a cell takes its correction −R only if it has
+    /// capacity (C above [`PROJECTION_CAPACITY`]·Ss) and the new water stays
+    /// at most half-way to saturation. What the other cells do not take goes
+    /// to one cell that can take it all (the one of largest capacity, as
+    /// before this rule, else the one of most room), else to the taking cells
+    /// in proportion to their room, else to all cells alike as a change of
+    /// head of at most [`UNIFORM_SHIFT`]. Failing all of these, a few Newton
+    /// iterations try to take the residual below Ss·[`POLISH_HEAD`] (in
+    /// saturated cells it is linear in the heads) and the placement is
+    /// chosen again; if it still fails, the cells that cannot take keep their
+    /// heads and the water balance is off by their residual. That happens
+    /// only at tolerances far looser than the default (see `UNIFORM_SHIFT`),
+    /// such as the ensemble filter's.
+    fn project_last_stage(&mut self, forcing: &Forcing, dt: f64) {
+        let n = self.column.cells();
+        let soil = *self.column.soil();
+        let ss = soil.specific_storage;
+        let gamma_dt = GAMMA * dt;
+        let room = |w: &Workspace, i: usize| {
+            soil.saturated_water_content - w.eval.states[i].water_content - ss * w.trial[i]
+        };
+        let takes = |w: &Workspace, i: usize, correction: f64| {
+            w.eval.states[i].capacity > PROJECTION_CAPACITY * ss && correction <= 0.5 * room(w, i)
+        };
+        let place = |w: &Workspace| {
+            let taking: Vec<bool> = (0..n).map(|i| takes(w, i, -w.residual[i])).collect();
+            let moved: f64 = (0..n).filter(|&i| !taking[i]).map(|i| w.residual[i]).sum();
+            let fits = |k: usize| takes(w, k, -w.residual[k] - moved);
+            let among = |key: &dyn Fn(usize) -> f64| {
+                (0..n)
+                    .filter(|&i| taking[i])
+                    .max_by(|&a, &b| key(a).total_cmp(&key(b)))
+            };
+            let largest = among(&|i| w.eval.states[i].capacity);
+            let roomiest = among(&|i| room(w, i));
+            let total_room: f64 = (0..n).filter(|&i| taking[i]).map(|i| room(w, i)).sum();
+            let placement = if let Some(k) = largest.filter(|&k| fits(k)) {
+                Placement::Sink(k)
+            } else if let Some(k) = roomiest.filter(|&k| fits(k)) {
+                Placement::Sink(k)
+            } else if largest.is_some() && -moved <= 0.5 * total_room {
+                Placement::Spread(total_room)
+            } else if moved.abs() <= UNIFORM_SHIFT * ss * n as f64 {
+                Placement::Uniform
+            } else {
+                Placement::Keep
+            };
+            (taking, moved, placement)
+        };
+        let mut placed = place(&self.work);
+        if matches!(placed.2, Placement::Keep) {
+            let w = &mut self.work;
+            w.start.copy_from_slice(&w.trial);
+            let polish = POLISH_HEAD * ss;
+            if !self.solve_stage(forcing, gamma_dt, polish, POLISH_ITERATIONS) {
+                let w = &mut self.work;
+                w.trial.copy_from_slice(&w.start);
+                w.side.fill(Side::BySign);
+                let coordinates = Coordinates::new(&soil);
+                stage_residual(&self.column, &coordinates, forcing, gamma_dt, w);
+            }
+            placed = place(&self.work);
+        }
+        let (taking, moved, placement) = placed;
+        let w = &mut self.work;
+        for i in 0..n {
+            let target = w.known[i] + gamma_dt * w.eval.storage[i];
+            let own = if taking[i] {
+                target
+            } else {
+                target + w.residual[i]
+            };
+            let target = match placement {
+                Placement::Sink(k) if i == k => target - moved,
+                Placement::Spread(total) if taking[i] => target - moved * room(w, i) / total,
+                Placement::Uniform => own - moved / n as f64,
+                _ if taking[i] => target,
+                _ => continue,
+            };
+            w.trial[i] = soil.pressure_head_from_storage(target);
         }
     }
 
@@ -1328,7 +1397,13 @@ impl Integrator {
     /// h = 0, K' = 0 above and K' → ∞ below) the Jacobian takes the side the
     /// step goes to, a step that crosses the kink stops on it, and a few full
     /// steps are taken even when they do not reduce max|R| (a watchdog).
-    fn solve_stage(&mut self, forcing: &Forcing, gamma_dt: f64, tolerance: f64) -> bool {
+    fn solve_stage(
+        &mut self,
+        forcing: &Forcing,
+        gamma_dt: f64,
+        tolerance: f64,
+        iterations: usize,
+    ) -> bool {
         let n = self.column.cells();
         let ss = self.column.soil().specific_storage;
         let column = self.column;
@@ -1338,14 +1413,14 @@ impl Integrator {
         let w = &mut self.work;
         w.side.fill(Side::BySign);
         let mut norm = residual(w);
-        let mut iterations = 0;
+        let mut done = 0;
         let mut watchdog = WATCHDOG_STEPS;
         while norm > tolerance {
-            if iterations == MAX_NEWTON_ITERATIONS || !norm.is_finite() {
+            if done == iterations || !norm.is_finite() {
                 w.worst_cell = largest_entry(&w.residual);
                 return false;
             }
-            iterations += 1;
+            done += 1;
             self.statistics.newton_iterations += 1;
             // (∂w/∂u − γΔt·∂F/∂u)·δ = R, tridiagonal; then u ← u − λ·δ. A cell
             // on a kink whose step leaves it to the other side than the one
@@ -1456,6 +1531,20 @@ fn stage_residual(
     } else {
         f64::INFINITY
     }
+}
+
+/// Where the last stage's projection puts the water that the cells that
+/// cannot take their own residual leave (see `Integrator::project_last_stage`).
+#[derive(Debug, Clone, Copy)]
+enum Placement {
+    /// One cell takes it all.
+    Sink(usize),
+    /// The taking cells, in proportion to their room (the total given).
+    Spread(f64),
+    /// Every cell alike.
+    Uniform,
+    /// Nobody: those cells keep their heads.
+    Keep,
 }
 
 /// How a step attempt solves its stages.
