@@ -87,19 +87,27 @@ fn simulate_writes_one_row_per_step_with_a_closed_balance() {
     }
 }
 
+/// `rootzone simulate` of a loam under the dry weather, with more arguments.
+fn simulate_loam(irrigation: &str, more: &[&str]) -> Output {
+    let weather = data("weather-dry.csv");
+    let mut args = vec![
+        "simulate",
+        "--weather",
+        &weather,
+        "--irrigation",
+        irrigation,
+        "--soil",
+        "loam",
+    ];
+    args.extend_from_slice(more);
+    rootzone(&args)
+}
+
 #[test]
 fn simulate_without_out_writes_to_stdout() {
     let dir = tempfile::tempdir().unwrap();
     let irrigation = write(dir.path(), "irr.csv", &schedule(3, 0.0));
-    let result = rootzone(&[
-        "simulate",
-        "--weather",
-        &data("weather-dry.csv"),
-        "--irrigation",
-        &irrigation,
-        "--soil",
-        "loam",
-    ]);
+    let result = simulate_loam(&irrigation, &[]);
     assert!(result.status.success());
     let text = String::from_utf8(result.stdout).unwrap();
     assert_eq!(text.lines().count(), 4);
@@ -125,17 +133,7 @@ fn simulate_writes_into_a_named_pipe_without_replacing_it() {
         let fifo = fifo.clone();
         std::thread::spawn(move || std::fs::read_to_string(fifo).unwrap())
     };
-    let result = rootzone(&[
-        "simulate",
-        "--weather",
-        &data("weather-dry.csv"),
-        "--irrigation",
-        &irrigation,
-        "--soil",
-        "loam",
-        "--out",
-        fifo.to_str().unwrap(),
-    ]);
+    let result = simulate_loam(&irrigation, &["--out", fifo.to_str().unwrap()]);
     assert!(result.status.success(), "{result:?}");
     let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
     assert!(kind.is_fifo(), "the pipe was replaced: {kind:?}");
