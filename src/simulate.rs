@@ -231,24 +231,24 @@ pub fn run(options: &SimulateOptions) -> Result<(), SimulateError> {
                 path: path.display().to_string(),
                 source,
             };
+            let write_into = |file: &mut std::fs::File| {
+                let mut out = std::io::BufWriter::new(file);
+                write_csv(&rows, &mut out)?;
+                out.flush()
+            };
             if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
-                let file = std::fs::OpenOptions::new()
+                let mut file = std::fs::OpenOptions::new()
                     .write(true)
                     .open(path)
                     .map_err(output)?;
-                let mut out = std::io::BufWriter::new(file);
-                write_csv(&rows, &mut out).map_err(output)?;
-                return out.flush().map_err(output);
+                return write_into(&mut file).map_err(output);
             }
             let dir = path
                 .parent()
                 .filter(|p| !p.as_os_str().is_empty())
                 .unwrap_or(Path::new("."));
             let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(output)?;
-            let mut out = std::io::BufWriter::new(tmp.as_file_mut());
-            write_csv(&rows, &mut out).map_err(output)?;
-            out.flush().map_err(output)?;
-            drop(out);
+            write_into(tmp.as_file_mut()).map_err(output)?;
             tmp.persist(path).map_err(|e| output(e.error))?;
             Ok(())
         }

@@ -27,7 +27,8 @@
 //! same attempt redone on the robust path (semismooth Newton in the
 //! coordinates of `Coordinates` near saturation, a watchdog, a pivoting
 //! solver, a looser tolerance with the last stage projected to exact
-//! conservation), which the next few attempts then take directly. The fast
+//! conservation, always at the default tolerances: see
+//! `Integrator::project_last_stage`), which the next few attempts then take directly. The fast
 //! path is what the coarse textures and all unponded runs need, at their old
 //! cost; the robust one gets ponded, saturated columns of the finer textures
 //! through the cusp of K at h = 0.
@@ -228,8 +229,9 @@ pub struct ColumnState {
 /// Newton stops when max|R| is below this fraction of the error tolerance's
 /// scale at saturation, absolute + relative·θs (Hairer & Wanner, *Solving ODEs
 /// II*, §IV.8: the iteration error a small fraction of the tolerance). With the
-/// default tolerances that is 8e-8 in stored water; the water balance does not
-/// depend on it (the last stage is projected, see `try_step`).
+/// default tolerances that is 8e-8 in stored water; there the water balance
+/// does not depend on it (the last stage is projected, see
+/// `Integrator::project_last_stage`).
 const NEWTON_FRACTION: f64 = 0.02;
 const MAX_NEWTON_ITERATIONS: usize = 25;
 /// The fast path's Newton residuals [m³/m³ of stored water]: the last stage
