@@ -154,3 +154,86 @@ fn the_daemon_polls_one_request_per_location_and_its_cycle_records_the_forecast(
         );
     }
 }
+
+/// PATCH is a merge patch (openapi.yaml, FieldPatch): a field's forecast
+/// source takes the keys a patch names and keeps the others, and a patch
+/// that leaves a source without a required key is refused, naming it,
+/// with the field as it was.
+#[test]
+fn a_patch_merges_into_the_forecast_source_key_by_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &config(""));
+    let body = json!({
+        "name": "with-source",
+        "model": "two-layer",
+        "forecast_source": {
+            "provider": "open-meteo", "latitude": 52.52, "longitude": 13.42,
+            "base_url": "http://127.0.0.1:9",
+        }
+    });
+    let r = curl(
+        &d,
+        "POST",
+        "/v1/fields",
+        Some(&body.to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let with = json_of(&r.2)["id"].as_i64().unwrap();
+    let r = curl(
+        &d,
+        "POST",
+        "/v1/fields",
+        Some(&json!({"name": "without", "model": "two-layer"}).to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    let without = json_of(&r.2)["id"].as_i64().unwrap();
+
+    let patch = json!({"forecast_source": {"latitude": -33.9, "provider": "met-norway"}});
+    let r = curl(
+        &d,
+        "PATCH",
+        &format!("/v1/fields/{with}"),
+        Some(&patch.to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 200, "{}", r.2);
+    let source = json_of(&r.2)["forecast_source"].clone();
+    assert_eq!(source["latitude"], -33.9, "{source}");
+    assert_eq!(source["provider"], "met-norway", "{source}");
+    assert_eq!(source["longitude"], 13.42, "{source}");
+    assert_eq!(source["base_url"], "http://127.0.0.1:9", "{source}");
+
+    // the same patch leaves a field without a source without a longitude
+    let r = curl(
+        &d,
+        "PATCH",
+        &format!("/v1/fields/{without}"),
+        Some(&patch.to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 422, "{}", r.2);
+    assert!(r.2.contains("longitude"), "{}", r.2);
+    // and removing a required key is refused too, the source kept
+    let r = curl(
+        &d,
+        "PATCH",
+        &format!("/v1/fields/{with}"),
+        Some(&json!({"forecast_source": {"longitude": null}}).to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 422, "{}", r.2);
+    assert!(r.2.contains("longitude"), "{}", r.2);
+    let r = curl(&d, "GET", &format!("/v1/fields/{with}"), None, Some(TOKEN));
+    assert_eq!(r.0, 200, "{}", r.2);
+    assert_eq!(json_of(&r.2)["forecast_source"], source);
+    let r = curl(
+        &d,
+        "GET",
+        &format!("/v1/fields/{without}"),
+        None,
+        Some(TOKEN),
+    );
+    assert!(json_of(&r.2).get("forecast_source").is_none(), "{}", r.2);
+}
