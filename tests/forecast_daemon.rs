@@ -13,7 +13,7 @@ use axum::extract::State;
 use axum::http::Uri;
 use axum::response::IntoResponse;
 use chrono::{DateTime, TimeDelta, Timelike, Utc};
-use common::{TOKEN, config, curl, json_of, start};
+use common::{TOKEN, config, create_field, curl, json_of, problem, start};
 use serde_json::{Value, json};
 
 /// Open-Meteo's hourly answer in UTC (offset 0): each value is the sum over
@@ -93,15 +93,7 @@ fn the_daemon_polls_one_request_per_location_and_its_cycle_records_the_forecast(
                 "base_url": base,
             }
         });
-        let r = curl(
-            &d,
-            "POST",
-            "/v1/fields",
-            Some(&body.to_string()),
-            Some(TOKEN),
-        );
-        assert_eq!(r.0, 201, "{}", r.2);
-        ids.push(json_of(&r.2)["id"].as_i64().unwrap());
+        ids.push(create_field(&d, body));
     }
     // both fields round to the same location (2 decimals): one request
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -171,24 +163,8 @@ fn a_patch_merges_into_the_forecast_source_key_by_key() {
             "base_url": "http://127.0.0.1:9",
         }
     });
-    let r = curl(
-        &d,
-        "POST",
-        "/v1/fields",
-        Some(&body.to_string()),
-        Some(TOKEN),
-    );
-    assert_eq!(r.0, 201, "{}", r.2);
-    let with = json_of(&r.2)["id"].as_i64().unwrap();
-    let r = curl(
-        &d,
-        "POST",
-        "/v1/fields",
-        Some(&json!({"name": "without", "model": "two-layer"}).to_string()),
-        Some(TOKEN),
-    );
-    assert_eq!(r.0, 201, "{}", r.2);
-    let without = json_of(&r.2)["id"].as_i64().unwrap();
+    let with = create_field(&d, body);
+    let without = create_field(&d, json!({"name": "without", "model": "two-layer"}));
 
     let patch = json!({"forecast_source": {"latitude": -33.9, "provider": "met-norway"}});
     let r = curl(
@@ -213,8 +189,7 @@ fn a_patch_merges_into_the_forecast_source_key_by_key() {
         Some(&patch.to_string()),
         Some(TOKEN),
     );
-    assert_eq!(r.0, 422, "{}", r.2);
-    assert!(r.2.contains("longitude"), "{}", r.2);
+    problem(r, 422, "longitude");
     // and removing a required key is refused too, the source kept
     let r = curl(
         &d,
@@ -223,8 +198,7 @@ fn a_patch_merges_into_the_forecast_source_key_by_key() {
         Some(&json!({"forecast_source": {"longitude": null}}).to_string()),
         Some(TOKEN),
     );
-    assert_eq!(r.0, 422, "{}", r.2);
-    assert!(r.2.contains("longitude"), "{}", r.2);
+    problem(r, 422, "longitude");
     let r = curl(&d, "GET", &format!("/v1/fields/{with}"), None, Some(TOKEN));
     assert_eq!(r.0, 200, "{}", r.2);
     assert_eq!(json_of(&r.2)["forecast_source"], source);

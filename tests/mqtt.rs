@@ -10,7 +10,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use common::{TOKEN, config, curl, json_of, start};
+use common::{TOKEN, config, create_field, curl, json_of, start};
 use rumqttc::{Client, Event, MqttOptions, Packet, QoS};
 use serde_json::{Value, json};
 
@@ -233,18 +233,6 @@ fn mqtt_config(broker: &Broker, extra: &str, retry_s: f64) -> String {
          reconnect_min_s = {retry_s}\nreconnect_max_s = {retry_s}\n",
         broker.url()
     ))
-}
-
-fn create_field(d: &common::Daemon, spec: Value) -> i64 {
-    let r = curl(
-        d,
-        "POST",
-        "/v1/fields",
-        Some(&spec.to_string()),
-        Some(TOKEN),
-    );
-    assert_eq!(r.0, 201, "{}", r.2);
-    json_of(&r.2)["id"].as_i64().unwrap()
 }
 
 fn measurements(d: &common::Daemon, id: i64) -> Vec<Value> {

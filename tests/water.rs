@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{TOKEN, config, curl, json_of, now_minus, problem, start};
+use common::{TOKEN, config, create_field, curl, json_of, now_minus, problem, start};
 use serde_json::json;
 
 #[test]
@@ -49,15 +49,7 @@ fn setpoints_carry_valve_time_and_the_water_is_accounted_and_exported() {
         "model": "richards",
         "irrigation_system": {"area_m2": area, "application_rate_mm_h": rate_mm_h}
     });
-    let r = curl(
-        &d,
-        "POST",
-        "/v1/fields",
-        Some(&body.to_string()),
-        Some(TOKEN),
-    );
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let id = create_field(&d, body);
     let fp = format!("/v1/fields/{id}");
     // dry, below the zone: the controller irrigates
     let readings: Vec<_> = (0..6)

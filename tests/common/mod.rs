@@ -145,6 +145,19 @@ pub fn curl_at(
     (status, ctype, body)
 }
 
+/// POSTs a field `spec`, asserts 201 and returns its id.
+pub fn create_field(d: &Daemon, spec: Value) -> i64 {
+    let r = curl(
+        d,
+        "POST",
+        "/v1/fields",
+        Some(&spec.to_string()),
+        Some(TOKEN),
+    );
+    assert_eq!(r.0, 201, "{}", r.2);
+    json_of(&r.2)["id"].as_i64().unwrap()
+}
+
 pub fn json_of(body: &str) -> Value {
     serde_json::from_str(body).unwrap_or_else(|e| panic!("not JSON ({e}): {body}"))
 }
