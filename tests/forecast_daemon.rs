@@ -166,14 +166,23 @@ fn a_patch_merges_into_the_forecast_source_key_by_key() {
     let with = create_field(&d, body);
     let without = create_field(&d, json!({"name": "without", "model": "two-layer"}));
 
+    let patch_field = |id: i64, patch: &Value| {
+        curl(
+            &d,
+            "PATCH",
+            &format!("/v1/fields/{id}"),
+            Some(&patch.to_string()),
+            Some(TOKEN),
+        )
+    };
+    let source_of = |id: i64| {
+        let r = curl(&d, "GET", &format!("/v1/fields/{id}"), None, Some(TOKEN));
+        assert_eq!(r.0, 200, "{}", r.2);
+        json_of(&r.2).get("forecast_source").cloned()
+    };
+
     let patch = json!({"forecast_source": {"latitude": -33.9, "provider": "met-norway"}});
-    let r = curl(
-        &d,
-        "PATCH",
-        &format!("/v1/fields/{with}"),
-        Some(&patch.to_string()),
-        Some(TOKEN),
-    );
+    let r = patch_field(with, &patch);
     assert_eq!(r.0, 200, "{}", r.2);
     let source = json_of(&r.2)["forecast_source"].clone();
     assert_eq!(source["latitude"], -33.9, "{source}");
@@ -182,32 +191,10 @@ fn a_patch_merges_into_the_forecast_source_key_by_key() {
     assert_eq!(source["base_url"], "http://127.0.0.1:9", "{source}");
 
     // the same patch leaves a field without a source without a longitude
-    let r = curl(
-        &d,
-        "PATCH",
-        &format!("/v1/fields/{without}"),
-        Some(&patch.to_string()),
-        Some(TOKEN),
-    );
-    problem(r, 422, "longitude");
+    problem(patch_field(without, &patch), 422, "longitude");
     // and removing a required key is refused too, the source kept
-    let r = curl(
-        &d,
-        "PATCH",
-        &format!("/v1/fields/{with}"),
-        Some(&json!({"forecast_source": {"longitude": null}}).to_string()),
-        Some(TOKEN),
-    );
-    problem(r, 422, "longitude");
-    let r = curl(&d, "GET", &format!("/v1/fields/{with}"), None, Some(TOKEN));
-    assert_eq!(r.0, 200, "{}", r.2);
-    assert_eq!(json_of(&r.2)["forecast_source"], source);
-    let r = curl(
-        &d,
-        "GET",
-        &format!("/v1/fields/{without}"),
-        None,
-        Some(TOKEN),
-    );
-    assert!(json_of(&r.2).get("forecast_source").is_none(), "{}", r.2);
+    let removal = json!({"forecast_source": {"longitude": null}});
+    problem(patch_field(with, &removal), 422, "longitude");
+    assert_eq!(source_of(with), Some(source));
+    assert_eq!(source_of(without), None);
 }
