@@ -2,8 +2,10 @@
 //! each of the 12 textures under its default zone (MODEL.md §4) and each
 //! weather file, 60 steps from h = −0.2 m, no noise and a perfect forecast,
 //! the controller given the plant's state (the oracle). Prints per case the
-//! irrigation, the largest distance outside the zone after θ first entered
-//! it (split into the dry and the wet side), the solve times and how many
+//! irrigation, the step at which θ first entered the zone (a plant that
+//! never enters has no distance after entry: "never"), the largest
+//! distance outside the zone after that (split into the dry and the wet
+//! side), the solve times and how many
 //! model evaluations the solves made. Beside it, the wet-side distance
 //! after entry of the same plant never irrigated: no irrigation gives the
 //! driest column there is (water only adds), so where that distance exceeds
@@ -101,11 +103,11 @@ fn main() {
     let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").expect("embedded weather");
     let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").expect("embedded weather");
     println!(
-        "| texture | weather | I_T mm | dry after entry | wet after entry | median ms | p95 ms | \
+        "| texture | weather | I_T mm | entered at | dry after entry | wet after entry | median ms | p95 ms | \
          max ms | predictions/solve | ms each | Jacobians/solve | ms each | iterations/solve | \
          not converged | fallbacks | wet after entry, never irrigated |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for texture in Texture::ALL {
         if !only.is_empty() && !only.contains(&texture.to_string()) {
             continue;
@@ -130,7 +132,7 @@ fn main() {
             let (mut irrigation, mut times) = (0.0, Vec::new());
             let (mut predictions, mut jacobians, mut iterations, mut unconverged) = (0, 0, 0, 0);
             let (mut prediction_ms, mut jacobian_ms) = (0.0, 0.0);
-            let (mut entered, mut dry_excess, mut wet_excess) = (false, 0.0f64, 0.0f64);
+            let (mut entry, mut dry_excess, mut wet_excess) = (None, 0.0f64, 0.0f64);
             let mut stopped = false;
             let mut fallbacks = 0;
             let (mut work, mut budget_cut, mut time_cut) = (Vec::new(), 0, 0);
@@ -172,8 +174,10 @@ fn main() {
                     }
                 };
                 let theta = report.water_content;
-                entered |= (low..=up).contains(&theta);
-                if entered {
+                if entry.is_none() && (low..=up).contains(&theta) {
+                    entry = Some(step);
+                }
+                if entry.is_some() {
                     dry_excess = dry_excess.max(low - theta);
                     wet_excess = wet_excess.max(theta - up);
                 }
@@ -185,8 +189,9 @@ fn main() {
             let mut sorted = times.clone();
             sorted.sort_by(f64::total_cmp);
             println!(
-                "| {texture} | {name} | {irrigation:.2} | {:.1e} | {:.1e} | {:.1} | {:.1} | {:.1} | \
+                "| {texture} | {name} | {irrigation:.2} | {} | {:.1e} | {:.1e} | {:.1} | {:.1} | {:.1} | \
                  {:.1} | {:.2} | {:.1} | {:.2} | {:.1} | {unconverged} | {fallbacks} | {:.1e} |",
+                entry.map_or("never".to_string(), |k| k.to_string()),
                 dry_excess.max(0.0),
                 wet_excess.max(0.0),
                 median(times.clone()),
