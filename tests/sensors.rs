@@ -22,9 +22,7 @@ fn measurements_name_their_sensor_and_raw_readings_are_calibrated() {
         {"id": "s45", "depth": 0.45,
          "calibration": {"kind": "table", "points": [[100, 0.05], [300, 0.25], [500, 0.40]]}}
     ]);
-    let r = post(&d, "/v1/fields", &json!({"name": "f", "sensors": sensors}));
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let id = create_field(&d, json!({"name": "f", "sensors": sensors}));
     let path = format!("/v1/fields/{id}/measurements");
     let t = now_minus(10);
     let batch = json!([
@@ -99,15 +97,12 @@ fn measurements_name_their_sensor_and_raw_readings_are_calibrated() {
 fn a_simulated_plant_reads_every_sensor_at_its_depth() {
     let dir = tempfile::tempdir().unwrap();
     let d = start(dir.path(), &config(""));
-    let r = post(
+    let id = create_field(
         &d,
-        "/v1/fields",
-        &json!({"name": "sim", "actuator": {"kind": "simulated"},
+        json!({"name": "sim", "actuator": {"kind": "simulated"},
                 "simulation": {"initial_head": -0.5, "measurement_noise": 0.0},
                 "sensors": [{"id": "root", "depth": 0.13}, {"id": "deep", "depth": 0.40}]}),
     );
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
     let stored = json_of(
         &curl(
             &d,
@@ -141,14 +136,11 @@ fn a_simulated_plant_reads_every_sensor_at_its_depth() {
 fn the_daemon_estimates_the_state_and_soil_from_the_readings_alone() {
     let dir = tempfile::tempdir().unwrap();
     let d = start(dir.path(), &config(""));
-    let r = post(
+    let id = create_field(
         &d,
-        "/v1/fields",
-        &json!({"name": "est", "model": "richards", "soil": "loam",
+        json!({"name": "est", "model": "richards", "soil": "loam",
                 "sensors": [{"id": "root", "depth": 0.13}, {"id": "deep", "depth": 0.35}]}),
     );
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
     let path = format!("/v1/fields/{id}");
     // before any reading: no estimate
     let e = json_of(&curl(&d, "GET", &format!("{path}/estimate"), None, None).2);

@@ -516,13 +516,11 @@ initial_head = -0.2
 fn a_field_that_cannot_finish_blocks_neither_others_nor_shutdown() {
     let dir = tempfile::tempdir().unwrap();
     let mut d = start(dir.path(), &config(""));
-    let create = |body: &str| -> i64 {
-        let r = curl(&d, "POST", "/v1/fields", Some(body), Some(TOKEN));
-        assert_eq!(r.0, 201, "{}", r.2);
-        json_of(&r.2)["id"].as_i64().unwrap()
-    };
-    let stuck = create(r#"{"name": "clay", "model": "richards", "soil": "clay"}"#);
-    let other = create(r#"{"name": "sandy", "model": "two-layer"}"#);
+    let stuck = create_field(
+        &d,
+        json!({"name": "clay", "model": "richards", "soil": "clay"}),
+    );
+    let other = create_field(&d, json!({"name": "sandy", "model": "two-layer"}));
     for (id, theta) in [(stuck, 0.30), (other, 0.20)] {
         let m = format!(r#"{{"time": "{}", "theta": {theta}}}"#, now_minus(1));
         let r = curl(

@@ -9,7 +9,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::{Daemon, TOKEN, curl, json_of, problem, start};
+use common::{Daemon, TOKEN, create_field, curl, json_of, problem, start};
 use serde_json::{Value, json};
 
 /// The daemon's configuration with a tiny plan and the given gate.
@@ -87,10 +87,10 @@ fn a_field_trains_uses_rolls_back_and_refuses_its_own_surrogate() {
         422,
         "sandy-loam",
     );
-    let richards = json!({"name": "loam", "soil": "loam", "model": "richards"}).to_string();
-    let r = curl(&d, "POST", "/v1/fields", Some(&richards), Some(TOKEN));
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let id = create_field(
+        &d,
+        json!({"name": "loam", "soil": "loam", "model": "richards"}),
+    );
     let fp = format!("/v1/fields/{id}");
     let patch = json!({"model": "two-layer"}).to_string();
     problem(
@@ -170,10 +170,7 @@ fn a_field_trains_uses_rolls_back_and_refuses_its_own_surrogate() {
 
     // a second job, queued behind another field's (one job at a time) and
     // cancelled (POST …/surrogate/cancel); then a third one that succeeds
-    let other = json!({"name": "sandy", "model": "richards"}).to_string();
-    let r = curl(&d, "POST", "/v1/fields", Some(&other), Some(TOKEN));
-    assert_eq!(r.0, 201, "{}", r.2);
-    let other = json_of(&r.2)["id"].as_i64().unwrap();
+    let other = create_field(&d, json!({"name": "sandy", "model": "richards"}));
     let r = start_job(&d, other, Some(r#"{"seed": 5}"#));
     assert_eq!(r.0, 202, "{}", r.2);
     let other_job = json_of(&r.2)["id"].as_str().unwrap().to_string();

@@ -65,9 +65,7 @@ fn out_of_range_input_is_refused_naming_the_key_and_its_range() {
     let r = post(&d, "/v1/fields", &json!({"name": "é".repeat(200)}));
     assert_eq!(r.0, 201, "{}", r.2);
 
-    let r = post(&d, "/v1/fields", &json!({"name": "north"}));
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
+    let id = create_field(&d, json!({"name": "north"}));
     let forecast = |precip: f64| {
         json!({"issued_at": now_minus(1), "start": now_minus(1), "step_s": 3600.0,
                "et0_mm": [0.1, 0.2], "precip_mm": [0.0, precip]})
@@ -537,14 +535,11 @@ fn a_plant_started_long_ago_replays_only_the_catch_up_span() {
     let d = start(dir.path(), &config(""));
     // 26 years behind the clock: at most 2 days (192 intervals of 900 s)
     // are simulated, the rest skipped
-    let r = post(
+    let id = create_field(
         &d,
-        "/v1/fields",
-        &json!({"name": "old", "actuator": {"kind": "simulated"},
+        json!({"name": "old", "actuator": {"kind": "simulated"},
                 "simulation": {"start": "2000-01-01T00:00:00Z"}}),
     );
-    assert_eq!(r.0, 201, "{}", r.2);
-    let id = json_of(&r.2)["id"].as_i64().unwrap();
     let state = json_of(
         &curl(
             &d,
