@@ -42,10 +42,10 @@ fn bench_sixty_steps(c: &mut Criterion) {
     let dry = WeatherSeries::parse(DRY_SCENARIO, "dry").unwrap();
     let rain = WeatherSeries::parse(RAIN_SCENARIO, "rain").unwrap();
     let mut group = c.benchmark_group("sixty_steps");
-    group.bench_function("own_sdirk4_moderate_dry", |b| {
+    group.bench_function("own_sdirk3_moderate_dry", |b| {
         b.iter(|| black_box(run_field(moderate(&dry))))
     });
-    group.bench_function("own_sdirk4_morning_irrigation_rain", |b| {
+    group.bench_function("own_sdirk3_morning_irrigation_rain", |b| {
         b.iter(|| black_box(run_field(scheduled(&rain))))
     });
     group.sample_size(10);
@@ -77,7 +77,7 @@ fn bench_training_set(c: &mut Criterion) {
         .collect();
     let mut group = c.benchmark_group("training_set");
     group.sample_size(10);
-    group.bench_function("own_sdirk4_30000_steps", |b| {
+    group.bench_function("own_sdirk3_30000_steps", |b| {
         b.iter(|| black_box(run_field(forcings.iter().copied())))
     });
     group.finish();

@@ -1,4 +1,4 @@
-//! The own SDIRK4 integrator against an independent one: the same column as a
+//! The own SDIRK3 integrator against an independent one: the same column as a
 //! DAE through diffsol's BDF, on an unsaturated schedule where both work.
 
 use rootzone::soil::diffsol_dae::DaeIntegrator;

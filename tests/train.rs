@@ -223,7 +223,11 @@ fn shipped_models_match_their_recorded_scores_on_fresh_data() {
     let dir = tempfile::tempdir().unwrap();
     let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
     // the recorded scores are the file's own: recomputed on the validation
-    // set they name (the full plan's, 5,000 samples of the training seed)
+    // set they name (the full plan's, 5,000 samples of the training seed).
+    // That set is simulated afresh: the files were trained when the column
+    // was integrated by SDIRK4, whose θ on sandy loam differs from today's
+    // SDIRK3 by about 1e-5 at the default tolerances, so the scores agree
+    // to a relative 1e-4, not to round-off (another soil's network is 5× off)
     let own = validation(3, 5000, 1, dir.path());
     // and they generalise: a validation set with a seed no training run
     // used. Validation sets differ in difficulty by themselves: E2's seeds
@@ -240,7 +244,10 @@ fn shipped_models_match_their_recorded_scores_on_fresh_data() {
         );
         let again = nrmse_scores(&mut model.predictor(), &own);
         for (a, r) in again.iter().zip(recorded(&model)) {
-            assert!((a - r).abs() < 1e-12, "{file}: {again:?} vs recorded {r}");
+            assert!(
+                (a - r).abs() <= 1e-4 * r,
+                "{file}: {again:?} vs recorded {r}"
+            );
         }
         let fresh = nrmse_scores(&mut model.predictor(), &fresh_set);
         for (f, r) in fresh.iter().zip(recorded(&model)) {
