@@ -214,6 +214,11 @@ pub struct IntegratorStatistics {
     pub fallbacks: usize,
     /// Newton iterations (each one tridiagonal solve).
     pub newton_iterations: usize,
+    /// Evaluations of a stage's residual (and its Jacobian), by every stage
+    /// solver: one per Newton iteration, plus one per solve, per line-search
+    /// halving and per re-solve on a kink. (The diffsol cross-check does not
+    /// count them.)
+    pub residual_evaluations: usize,
     /// Calls of [`Integrator::advance`].
     pub sampling_steps: usize,
 }
@@ -392,6 +397,8 @@ struct Workspace {
     base_residual: Vec<f64>,
     /// Step attempts left that go straight to the robust path.
     robust_streak: usize,
+    /// Stage residuals evaluated so far (see [`IntegratorStatistics`]).
+    evaluations: usize,
     /// Kept only while tangents are propagated: diag(C + Ss) at the start of
     /// the step, and per stage the tridiagonal ∂F/∂H, diag(C + Ss) and
     /// ∂F_0/∂(irrigation) (1/dz while the top face takes all the supply).
@@ -435,6 +442,7 @@ impl Workspace {
             saturated: vec![false; n],
             switches: vec![0; n],
             robust_streak: 0,
+            evaluations: 0,
             keep_jacobians: false,
             start_capacity: z.clone(),
             stage_lower: std::array::from_fn(|_| z.clone()),
@@ -488,7 +496,10 @@ impl Integrator {
     }
 
     pub fn statistics(&self) -> IntegratorStatistics {
-        self.statistics
+        IntegratorStatistics {
+            residual_evaluations: self.work.evaluations,
+            ..self.statistics
+        }
     }
 
     pub fn limits(&self) -> WorkLimits {
@@ -1012,6 +1023,7 @@ impl Integrator {
         let ss = self.column.soil().specific_storage;
         let column = self.column;
         let residual = |w: &mut Workspace| -> f64 {
+            w.evaluations += 1;
             column.evaluate(&w.trial, forcing, &mut w.eval, Derivatives::Included);
             let mut norm = 0.0f64;
             for i in 0..n {
@@ -1091,6 +1103,7 @@ impl Integrator {
         let column = self.column;
         let coordinates = Coordinates::new(self.column.soil());
         let residual = |w: &mut Workspace| -> f64 {
+            w.evaluations += 1;
             let saturated = &w.saturated;
             let chain = |i: usize, h: f64, st: &HydraulicState| {
                 if saturated[i] {
@@ -1535,6 +1548,7 @@ fn stage_residual(
     gamma_dt: f64,
     w: &mut Workspace,
 ) -> f64 {
+    w.evaluations += 1;
     let ss = column.soil().specific_storage;
     let side = &w.side;
     let chain = |i: usize, h: f64, st: &HydraulicState| coordinates.chain(h, st, side[i]);
