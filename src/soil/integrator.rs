@@ -399,9 +399,6 @@ struct Workspace {
     robust_streak: usize,
     /// Stage residuals evaluated so far (see [`IntegratorStatistics`]).
     evaluations: usize,
-    /// Whether the last step attempt was solved on the fast path, whose
-    /// `eval` is then at the attempt's new heads (`trial`).
-    ended_on_fast_path: bool,
     /// Kept only while tangents are propagated: diag(C + Ss) at the start of
     /// the step, and per stage the tridiagonal ∂F/∂H, diag(C + Ss) and
     /// ∂F_0/∂(irrigation) (1/dz while the top face takes all the supply).
@@ -446,7 +443,6 @@ impl Workspace {
             switches: vec![0; n],
             robust_streak: 0,
             evaluations: 0,
-            ended_on_fast_path: false,
             keep_jacobians: false,
             start_capacity: z.clone(),
             stage_lower: std::array::from_fn(|_| z.clone()),
@@ -640,17 +636,6 @@ impl Integrator {
             match self.try_step(&heads, &forcing, this_dt) {
                 Step::Accepted { error } => {
                     self.propagate_tangents(tangents, this_dt, irrigation);
-                    if self.work.ended_on_fast_path {
-                        // the fast path's last Newton iterate is the new
-                        // heads and was evaluated there: its stored water
-                        // is the next step's start, not computed again
-                        let ss = self.column.soil().specific_storage;
-                        let w = &mut self.work;
-                        for i in 0..n {
-                            w.storage[i] = w.eval.states[i].water_content + ss * w.trial[i];
-                        }
-                        w.storage_heads.copy_from_slice(&w.trial);
-                    }
                     let w = &self.work;
                     heads.copy_from_slice(&w.trial);
                     for (k, amount) in amounts.iter_mut().enumerate() {
@@ -717,7 +702,6 @@ impl Integrator {
 
     /// One step attempt on the given path.
     fn try_step_on(&mut self, path: Path, heads: &[f64], forcing: &Forcing, dt: f64) -> Step {
-        self.work.ended_on_fast_path = false;
         let n = self.column.cells();
         let soil = *self.column.soil();
         let ss = soil.specific_storage;
@@ -837,7 +821,6 @@ impl Integrator {
                     };
             }
         }
-        self.work.ended_on_fast_path = path == Path::Fast;
         // Embedded estimate: Δt·Σ (b_j − b̂_j)·F_j, scaled per cell.
         let w = &self.work;
         let tol = self.tolerances;
@@ -862,6 +845,16 @@ impl Integrator {
             self.work.worst_cell = worst;
         }
         if error.is_finite() && error <= 1.0 {
+            if path == Path::Fast {
+                // the fast path's last Newton iterate is the new heads and
+                // was evaluated there: its stored water is the next step's
+                // start, not computed again
+                let w = &mut self.work;
+                for i in 0..n {
+                    w.storage[i] = w.eval.states[i].water_content + ss * w.trial[i];
+                }
+                w.storage_heads.copy_from_slice(&w.trial);
+            }
             Step::Accepted { error }
         } else {
             Step::Rejected {
