@@ -85,7 +85,7 @@ pub struct Evaluation {
     /// d(uptake rate)/dh_i.
     pub uptake_gradient: Vec<f64>,
     /// (dK_i/du_i, dh_i/du_i) the derivatives were taken with ((K', 1) for u = h).
-    chains: Vec<(f64, f64)>,
+    pub(super) chains: Vec<(f64, f64)>,
     /// Cells evaluated on the saturated branch whatever their head (θ = θs,
     /// K = Ks, C = K' = 0): the integrator's active-set iteration sets them.
     pub(super) saturated_branch: Vec<bool>,
@@ -217,21 +217,23 @@ impl Column {
         out: &mut Evaluation,
         derivatives: Derivatives,
     ) {
-        self.evaluate_in(heads, forcing, out, derivatives, None)
+        self.evaluate_in(heads, forcing, out, derivatives, None::<&Chain>)
     }
 
     /// [`Column::evaluate`] with the derivatives taken with respect to other
     /// unknowns than the heads: `chain(i, h_i, state_i)` gives (dK_i/du_i,
     /// dh_i/du_i) for the unknown u_i of cell i (see the integrator's Newton
     /// coordinates near saturation). The rates are the same.
-    pub(super) fn evaluate_in(
+    pub(super) fn evaluate_in<C>(
         &self,
         heads: &[f64],
         forcing: &Forcing,
         out: &mut Evaluation,
         derivatives: Derivatives,
-        chain: Option<&Chain>,
-    ) {
+        chain: Option<&C>,
+    ) where
+        C: Fn(usize, f64, &HydraulicState) -> (f64, f64) + ?Sized,
+    {
         let n = self.cells;
         debug_assert_eq!(heads.len(), n);
         let dz = self.cell_thickness();

@@ -380,6 +380,8 @@ struct Workspace {
     worst_cell: Option<usize>,
     /// Per cell, the side of the kink its Newton derivative is taken on.
     side: Vec<Side>,
+    /// The Newton unknown's coordinate at `base` (see `Coordinates::coordinate`).
+    base_coordinate: Vec<Option<f64>>,
     solver: Tridiagonal,
     /// The robust path's starting guess of the stage being solved.
     start: Vec<f64>,
@@ -432,6 +434,7 @@ impl Workspace {
             base: z.clone(),
             worst_cell: None,
             side: vec![Side::BySign; n],
+            base_coordinate: vec![None; n],
             solver: Tridiagonal::new(n),
             scratch: z.clone(),
             normal: vec![0.0; n * n],
@@ -1283,12 +1286,12 @@ impl Integrator {
             }
             iterations += 1;
             self.statistics.newton_iterations += 1;
+            // the evaluation at the iterate took its derivatives by the
+            // heads' signs (w.side is BySign throughout): its dh/du is the
+            // chain's
             let e = &w.eval;
-            let trial = &w.trial;
-            let diagonal = |i: usize| {
-                let (_, dh) = coordinates.chain(trial[i], &e.states[i], Side::BySign);
-                (e.states[i].capacity + ss) * dh - gamma_dt * e.diagonal[i]
-            };
+            let diagonal =
+                |i: usize| (e.states[i].capacity + ss) * e.chains[i].1 - gamma_dt * e.diagonal[i];
             let shift = |i: usize| {
                 (diagonal(i).abs() + gamma_dt * (e.lower[i].abs() + e.upper[i].abs())) / tau
             };
@@ -1393,6 +1396,9 @@ impl Integrator {
             }
             w.base.copy_from_slice(&w.trial);
             w.base_residual.copy_from_slice(&w.residual);
+            for i in 0..n {
+                w.base_coordinate[i] = coordinates.coordinate(w.base[i]);
+            }
             loop {
                 iterations += 1;
                 self.statistics.newton_iterations += 1;
@@ -1402,10 +1408,11 @@ impl Integrator {
                     let d = w.normal[j * n + j].max(1e-12 * largest);
                     factor[j * n + j] += mu * d;
                 }
-                let solved = cholesky_solve(factor, n, &w.gradient, &mut w.update);
+                // JᵀJ of a tridiagonal J is pentadiagonal
+                let solved = cholesky_solve(factor, n, 2, &w.gradient, &mut w.update);
                 if solved {
                     for i in 0..n {
-                        w.trial[i] = match coordinates.coordinate(w.base[i]) {
+                        w.trial[i] = match w.base_coordinate[i] {
                             Some(u) => coordinates.head(u - w.update[i]),
                             None => w.base[i] - w.update[i],
                         };
@@ -1476,14 +1483,12 @@ impl Integrator {
             // (at most three times).
             let mut flips = 0;
             loop {
+                // the evaluation at the iterate took its derivatives with
+                // the same heads and sides: its dh/du is the chain's
                 let e = &w.eval;
-                let (trial, side) = (&w.trial, &w.side);
                 let ok = w.solver.solve(
                     |i| -gamma_dt * e.lower[i],
-                    |i| {
-                        let (_, dh) = coordinates.chain(trial[i], &e.states[i], side[i]);
-                        (e.states[i].capacity + ss) * dh - gamma_dt * e.diagonal[i]
-                    },
+                    |i| (e.states[i].capacity + ss) * e.chains[i].1 - gamma_dt * e.diagonal[i],
                     |i| -gamma_dt * e.upper[i],
                     &w.residual,
                     &mut w.update,
@@ -1497,7 +1502,7 @@ impl Integrator {
                 }
                 let mut changed = false;
                 for i in 0..n {
-                    if coordinates.coordinate(w.trial[i]) == Some(0.0) {
+                    if coordinates.on_kink(w.trial[i]) {
                         let to = if w.update[i] > 0.0 {
                             Side::Below
                         } else {
@@ -1520,11 +1525,18 @@ impl Integrator {
                 residual(w);
             }
             w.base.copy_from_slice(&w.trial);
+            for i in 0..n {
+                w.base_coordinate[i] = coordinates.coordinate(w.base[i]);
+            }
             w.side.fill(Side::BySign);
             let mut lambda = 1.0;
             loop {
                 for i in 0..n {
-                    w.trial[i] = coordinates.step(w.base[i], lambda * w.update[i]);
+                    w.trial[i] = coordinates.step_from(
+                        w.base_coordinate[i],
+                        w.base[i],
+                        lambda * w.update[i],
+                    );
                 }
                 let next = residual(w);
                 // the watchdog's full steps are the first few of the solve
@@ -1674,7 +1686,7 @@ impl Coordinates {
 
     /// (dK/du, dh/du) at h for the cell's unknown u.
     fn chain(&self, h: f64, s: &HydraulicState, side: Side) -> (f64, f64) {
-        if self.coordinate(h).is_none() {
+        if !self.has_coordinate(h) {
             return (s.conductivity_derivative, 1.0);
         }
         let below = match side {
@@ -1711,10 +1723,42 @@ impl Coordinates {
         }
     }
 
+    /// Whether the cell's unknown is ψ, i.e. `coordinate(h).is_some()`,
+    /// with the power only where α|h| is within 1e-12 (relative) of the
+    /// limit: below it a^(n−1) < PSI_LIMIT by far more than the power's
+    /// rounding (under an ulp), at or above it ψ is not the unknown.
+    fn has_coordinate(&self, h: f64) -> bool {
+        if !self.active {
+            return false;
+        }
+        if h >= 0.0 {
+            return true;
+        }
+        let a = -self.alpha * h;
+        if a < self.limit * (1.0 - 1e-12) {
+            true
+        } else {
+            self.coordinate(h).is_some()
+        }
+    }
+
+    /// Whether the cell's unknown is ψ and ψ = 0, i.e. `coordinate(h) ==
+    /// Some(0.0)`, without the power: for h < 0, a^(n−1) ≥ a > 0 when
+    /// 0 < a ≤ 1 and n < 2, so ψ = 0 only where α·h is 0.
+    fn on_kink(&self, h: f64) -> bool {
+        self.active && self.alpha * h == 0.0
+    }
+
     /// The head after the step −δ in the cell's unknown; a step that crosses
     /// the kink from either side stops on it (h = 0).
     fn step(&self, base: f64, delta: f64) -> f64 {
-        match self.coordinate(base) {
+        self.step_from(self.coordinate(base), base, delta)
+    }
+
+    /// [`Coordinates::step`] with the base's coordinate already known
+    /// (`coordinate(base)`), as a line search needs it at every trial.
+    fn step_from(&self, coordinate: Option<f64>, base: f64, delta: f64) -> f64 {
+        match coordinate {
             None => base - delta,
             Some(u) => {
                 let to = u - delta;
@@ -1741,12 +1785,22 @@ fn largest_entry(values: &[f64]) -> Option<usize> {
 }
 
 /// Solves the symmetric positive definite system `matrix·x = rhs` (`matrix`
-/// n×n, row-major, overwritten by its Cholesky factor). Returns false if a
-/// pivot is not positive or the solution is not finite.
-fn cholesky_solve(matrix: &mut [f64], n: usize, rhs: &[f64], x: &mut [f64]) -> bool {
+/// n×n, row-major, overwritten by its Cholesky factor), whose entries are
+/// zero more than `bandwidth` places off the diagonal. The factor of a band
+/// matrix has the same band (no fill-in outside it), so only the band is
+/// computed: O(n·bandwidth²) instead of O(n³), and the same numbers as the
+/// dense algorithm, whose terms outside the band are products with zeros.
+/// Returns false if a pivot is not positive or the solution is not finite.
+fn cholesky_solve(
+    matrix: &mut [f64],
+    n: usize,
+    bandwidth: usize,
+    rhs: &[f64],
+    x: &mut [f64],
+) -> bool {
     for j in 0..n {
         let mut d = matrix[j * n + j];
-        for k in 0..j {
+        for k in j.saturating_sub(bandwidth)..j {
             d -= matrix[j * n + k] * matrix[j * n + k];
         }
         if !(d > 0.0 && d.is_finite()) {
@@ -1754,9 +1808,9 @@ fn cholesky_solve(matrix: &mut [f64], n: usize, rhs: &[f64], x: &mut [f64]) -> b
         }
         let d = d.sqrt();
         matrix[j * n + j] = d;
-        for i in j + 1..n {
+        for i in j + 1..(j + bandwidth + 1).min(n) {
             let mut v = matrix[i * n + j];
-            for k in 0..j {
+            for k in i.saturating_sub(bandwidth)..j {
                 v -= matrix[i * n + k] * matrix[j * n + k];
             }
             matrix[i * n + j] = v / d;
@@ -1764,14 +1818,14 @@ fn cholesky_solve(matrix: &mut [f64], n: usize, rhs: &[f64], x: &mut [f64]) -> b
     }
     for i in 0..n {
         let mut v = rhs[i];
-        for k in 0..i {
+        for k in i.saturating_sub(bandwidth)..i {
             v -= matrix[i * n + k] * x[k];
         }
         x[i] = v / matrix[i * n + i];
     }
     for i in (0..n).rev() {
         let mut v = x[i];
-        for k in i + 1..n {
+        for k in i + 1..(i + bandwidth + 1).min(n) {
             v -= matrix[k * n + i] * x[k];
         }
         x[i] = v / matrix[i * n + i];
@@ -2022,6 +2076,94 @@ mod tests {
             assert!((v - want).abs() < 1e-14, "{x:?}");
         }
         assert!(!solver.solve(|_| 0.0, |_| 0.0, |_| 0.0, &[1.0; 3], &mut x));
+    }
+
+    /// The banded Cholesky solve of the normal equations: JᵀJ·x = JᵀJ·x* for
+    /// a tridiagonal J gives x* back, to the same bits with the band as
+    /// with the whole matrix (bandwidth n − 1, the dense algorithm), and a
+    /// matrix that is not positive definite is refused.
+    #[test]
+    fn the_banded_cholesky_solves_normal_equations_as_the_dense_one_does() {
+        let n = 9;
+        let j = |r: usize, c: usize| -> f64 {
+            match (r as i64 - c as i64).abs() {
+                0 => 3.0 + 0.25 * r as f64,
+                1 => -1.0 + 0.1 * (r + c) as f64,
+                _ => 0.0,
+            }
+        };
+        let mut normal = vec![0.0; n * n];
+        for a in 0..n {
+            for b in 0..n {
+                normal[a * n + b] = (0..n).map(|r| j(r, a) * j(r, b)).sum();
+            }
+        }
+        let want: Vec<f64> = (0..n).map(|i| (i as f64 - 3.5) / 2.0).collect();
+        let rhs: Vec<f64> = (0..n)
+            .map(|a| (0..n).map(|b| normal[a * n + b] * want[b]).sum())
+            .collect();
+        let (mut banded, mut dense) = (normal.clone(), normal.clone());
+        let (mut x_banded, mut x_dense) = (vec![0.0; n], vec![0.0; n]);
+        assert!(cholesky_solve(&mut banded, n, 2, &rhs, &mut x_banded));
+        assert!(cholesky_solve(&mut dense, n, n - 1, &rhs, &mut x_dense));
+        for (got, want) in x_banded.iter().zip(&want) {
+            assert!((got - want).abs() < 1e-12, "{x_banded:?}");
+        }
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&x_banded), bits(&x_dense));
+        assert_eq!(bits(&banded), bits(&dense));
+        let mut indefinite = normal.clone();
+        indefinite[4 * n + 4] = -1.0;
+        assert!(!cholesky_solve(&mut indefinite, n, 2, &rhs, &mut x_banded));
+    }
+
+    /// The shortcuts of the Newton coordinates say what `coordinate` says:
+    /// whether ψ is the unknown, and whether it is the kink ψ = 0, on both
+    /// sides of the limit and at saturation.
+    #[test]
+    fn the_coordinate_shortcuts_agree_with_the_coordinate() {
+        for texture in crate::soil::Texture::ALL {
+            let c = Coordinates::new(&texture.parameters());
+            let limit_head = -c.limit / c.alpha;
+            let mut heads = vec![
+                0.0,
+                -0.0,
+                1e-6,
+                -1e-300,
+                -1e-9,
+                -1e-3,
+                -0.1,
+                -10.0,
+                f64::NAN,
+            ];
+            for f in [
+                0.5,
+                1.0 - 1e-9,
+                1.0 - 1e-13,
+                1.0,
+                1.0 + 1e-13,
+                1.0 + 1e-9,
+                2.0,
+            ] {
+                heads.push(limit_head * f);
+            }
+            for h in heads {
+                assert_eq!(
+                    c.has_coordinate(h),
+                    c.coordinate(h).is_some(),
+                    "{texture} h = {h}"
+                );
+                assert_eq!(
+                    c.on_kink(h),
+                    c.coordinate(h) == Some(0.0),
+                    "{texture} h = {h}"
+                );
+                assert_eq!(
+                    c.step_from(c.coordinate(h), h, 1e-4).to_bits(),
+                    c.step(h, 1e-4).to_bits()
+                );
+            }
+        }
     }
 
     /// The Newton coordinates near saturation map back to the heads and
