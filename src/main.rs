@@ -128,7 +128,8 @@ enum Command {
         /// embedded weather-dry).
         #[arg(long)]
         weather: Option<PathBuf>,
-        /// Control steps of 2 h.
+        /// Control steps of 2 h, 1 … 10000 (after the weather file's last
+        /// row, that row holds).
         #[arg(long, default_value_t = 60)]
         steps: usize,
         /// Process noise level, e.g. 0.02 for 2 %.

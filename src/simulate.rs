@@ -58,7 +58,12 @@ pub fn read_irrigation(path: &Path) -> Result<Vec<f64>, InputError> {
     parse_irrigation(&text, &origin)
 }
 
-/// Parses irrigation CSV text; `origin` names the source in errors.
+/// The largest rate of an irrigation file [m/s]: the largest irrigation
+/// rate a field of the daemon may be given (`irrigation_max`, 360 mm/h).
+pub const MAX_IRRIGATION: f64 = 1e-4;
+
+/// Parses irrigation CSV text; `origin` names the source in errors: steps
+/// 0, 1, 2, … in order, rates in [0, [`MAX_IRRIGATION`]] m/s.
 pub fn parse_irrigation(text: &str, origin: &str) -> Result<Vec<f64>, InputError> {
     let rows = read_table(text, origin, &["step", "irrigation_m_per_s"])?;
     let mut rates = Vec::with_capacity(rows.len());
@@ -79,6 +84,13 @@ pub fn parse_irrigation(text: &str, origin: &str) -> Result<Vec<f64>, InputError
         if rate < 0.0 {
             return Err(err(format!(
                 "irrigation_m_per_s = {} is negative",
+                row.raw[1]
+            )));
+        }
+        if rate > MAX_IRRIGATION {
+            return Err(err(format!(
+                "irrigation_m_per_s = {} exceeds {MAX_IRRIGATION} m/s (360 mm/h, the largest \
+                 irrigation rate a field may be given)",
                 row.raw[1]
             )));
         }

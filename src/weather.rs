@@ -6,6 +6,16 @@ use rand::{Rng, RngExt};
 
 use crate::soil::Forcing;
 
+/// Largest ET0 rate [mm/h] of a forecast or a weather file (the highest
+/// hourly reference evapotranspiration observed is about 1.5 mm/h).
+pub const MAX_ET0_MM_PER_H: f64 = 2.0;
+/// Largest precipitation rate [mm/h] of a forecast or a weather file (the
+/// world record for one hour is about 305 mm).
+pub const MAX_PRECIP_MM_PER_H: f64 = 400.0;
+/// The step of a weather file [h]: its amounts are per 2-h step, the
+/// sampling time of MODEL.md.
+pub const FILE_STEP_HOURS: f64 = 2.0;
+
 /// Weather of one sampling step, amounts over the step in mm.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WeatherStep {
@@ -73,7 +83,10 @@ impl WeatherSeries {
         WeatherSeries { steps }
     }
 
-    /// Reads a weather CSV with columns `step,start_hour,et0_mm,precip_mm`.
+    /// Reads a weather CSV with columns `step,start_hour,et0_mm,precip_mm`:
+    /// steps 0, 1, 2, … in order, amounts in mm per 2-h step, each in
+    /// [0, 4] (ET0, [`MAX_ET0_MM_PER_H`]) or [0, 800] (precipitation,
+    /// [`MAX_PRECIP_MM_PER_H`]), the same rates the API takes.
     pub fn from_file(path: &Path) -> Result<Self, InputError> {
         let text = std::fs::read_to_string(path).map_err(|e| InputError {
             path: path.display().to_string(),
@@ -101,9 +114,19 @@ impl WeatherSeries {
                     steps.len()
                 )));
             }
-            for (k, name) in [(2, "et0_mm"), (3, "precip_mm")] {
+            for (k, name, rate) in [
+                (2, "et0_mm", MAX_ET0_MM_PER_H),
+                (3, "precip_mm", MAX_PRECIP_MM_PER_H),
+            ] {
                 if row.values[k] < 0.0 {
                     return Err(err(format!("{name} = {} is negative", row.raw[k])));
+                }
+                let most = rate * FILE_STEP_HOURS;
+                if row.values[k] > most {
+                    return Err(err(format!(
+                        "{name} = {} exceeds {most} mm ({rate} mm/h over a {FILE_STEP_HOURS}-h step)",
+                        row.raw[k]
+                    )));
                 }
             }
             steps.push(WeatherStep {

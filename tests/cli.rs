@@ -177,6 +177,40 @@ fn simulate_takes_a_soil_by_its_parameters() {
     );
 }
 
+/// A weather file's amounts have the API's ranges: 4 mm of ET0 in a 2-h
+/// step is 2 mm/h, the most, and 4.5 is refused, naming the file, the line
+/// and the value, with no output file.
+#[test]
+fn a_weather_file_beyond_the_documented_rates_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let irrigation = write(dir.path(), "irr.csv", &schedule(2, 1e-7));
+    let out = dir.path().join("out.csv");
+    let run = |weather: &str| {
+        let hot = write(dir.path(), "hot.csv", weather);
+        let result = rootzone(&[
+            "simulate",
+            "--weather",
+            &hot,
+            "--irrigation",
+            &irrigation,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        (hot, result)
+    };
+    let (_, ok) = run("step,start_hour,et0_mm,precip_mm\n0,0,4,800\n1,2,4,0\n");
+    assert_eq!(ok.status.code(), Some(0), "{ok:?}");
+    std::fs::remove_file(&out).unwrap();
+    let (hot, refused) = run("step,start_hour,et0_mm,precip_mm\n0,0,4,0\n1,2,4.5,0\n");
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert_eq!(refused.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains(&format!("{hot}:3")) && stderr.contains("et0_mm = 4.5 exceeds 4 mm"),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+}
+
 /// Each bad input: exit code 2, one line naming the file (and line and value
 /// where there is one), and no output file.
 #[test]
@@ -193,6 +227,12 @@ fn bad_input_exits_2_with_a_clear_message_and_no_output() {
         dir.path(),
         "nan.csv",
         "step,irrigation_m_per_s\n0,1e-7\n1,1e-7\n2,NaN\n",
+    );
+    // the largest rate a field may be given is 1e-4 m/s
+    let flood = write(
+        dir.path(),
+        "flood.csv",
+        "step,irrigation_m_per_s\n0,1e-4\n1,1.5e-4\n",
     );
     let ragged = write(
         dir.path(),
@@ -216,6 +256,10 @@ fn bad_input_exits_2_with_a_clear_message_and_no_output() {
             vec![format!("{nan}:4"), "NaN".into()],
         ),
         (vec!["--irrigation", &ragged], vec![format!("{ragged}:2")]),
+        (
+            vec!["--irrigation", &flood],
+            vec![format!("{flood}:3"), "1.5e-4".into(), "0.0001 m/s".into()],
+        ),
         (vec!["--irrigation", &missing], vec![missing.clone()]),
         (
             vec!["--irrigation", &long],

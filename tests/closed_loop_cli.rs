@@ -92,7 +92,22 @@ fn the_oracle_and_a_surrogate_run_on_sandy_loam() {
 
 #[test]
 fn bad_arguments_exit_2_with_a_message() {
-    let cases: [(&[&str], &str); 6] = [
+    let cases: [(&[&str], &str); 8] = [
+        (
+            &["--plant", "loam", "--controller", "oracle", "--steps", "0"],
+            "1 … 10000, got 0",
+        ),
+        (
+            &[
+                "--plant",
+                "loam",
+                "--controller",
+                "oracle",
+                "--steps",
+                "10001",
+            ],
+            "1 … 10000, got 10001",
+        ),
         (&["--plant", "peat", "--controller", "oracle"], "peat"),
         (&["--plant", "sandy-loam", "--controller", "pid"], "pid"),
         (

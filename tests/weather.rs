@@ -83,6 +83,18 @@ fn malformed_weather_names_line_and_value() {
             2,
             "not finite",
         ),
+        // the API's rates over a 2-h step: ET0 at most 2 mm/h (4 mm), rain
+        // at most 400 mm/h (800 mm)
+        (
+            "step,start_hour,et0_mm,precip_mm\n0,0,4,800\n1,2,4.01,0\n",
+            3,
+            "et0_mm = 4.01 exceeds 4 mm",
+        ),
+        (
+            "step,start_hour,et0_mm,precip_mm\n0,0,4,800\n1,2,0,800.5\n",
+            3,
+            "precip_mm = 800.5 exceeds 800 mm",
+        ),
     ];
     for (text, line, needle) in cases {
         let err = WeatherSeries::parse(text, "w.csv").unwrap_err();
@@ -92,4 +104,9 @@ fn malformed_weather_names_line_and_value() {
         assert!(message.contains(needle), "{message}");
     }
     assert!(WeatherSeries::parse("step,start_hour,et0_mm,precip_mm\n", "w.csv").is_err());
+    // the bounds themselves are accepted
+    let edge = WeatherSeries::parse("step,start_hour,et0_mm,precip_mm\n0,0,4,800\n", "w.csv")
+        .expect("the largest amounts are valid");
+    assert_eq!(edge.steps()[0].et0_mm, 4.0);
+    assert_eq!(edge.steps()[0].precip_mm, 800.0);
 }

@@ -155,6 +155,11 @@ impl Case {
     }
 }
 
+/// The longest season of one case, in 2-h steps (about 833 days; the
+/// weather's last row holds after the file ends): the run's work and its
+/// trace grow with it.
+pub const MAX_STEPS: usize = 10_000;
+
 /// Runs one case.
 pub fn run_case(case: &Case) -> Result<ObservedRun, String> {
     for (name, v) in [
@@ -166,8 +171,11 @@ pub fn run_case(case: &Case) -> Result<ObservedRun, String> {
             return Err(format!("{name} must be in [0, 1), got {v}"));
         }
     }
-    if case.steps == 0 {
-        return Err("--steps must be at least 1".into());
+    if !(1..=MAX_STEPS).contains(&case.steps) {
+        return Err(format!(
+            "--steps must be in 1 … {MAX_STEPS}, got {}",
+            case.steps
+        ));
     }
     if case.sensor_depths.is_empty() {
         return Err("at least one sensor depth is needed".into());

@@ -10,8 +10,9 @@ use crate::soil::{Crop, Texture, VanGenuchten};
 /// The documented ranges of what comes in (`openapi.yaml` states the same).
 /// Longest field or sensor name [characters].
 pub const MAX_NAME_CHARS: usize = 200;
-/// Irrigation rate limit [m/s]: (0, 1e-4], i.e. up to 360 mm/h.
-pub const IRRIGATION_MAX: (f64, f64) = (0.0, 1e-4);
+/// Irrigation rate limit [m/s]: (0, 1e-4], i.e. up to 360 mm/h (the
+/// largest rate of an irrigation file too).
+pub const IRRIGATION_MAX: (f64, f64) = (0.0, crate::simulate::MAX_IRRIGATION);
 /// Control period [s]: one minute to one day.
 pub const CONTROL_PERIOD_S: (f64, f64) = (60.0, 86_400.0);
 /// Wait for a boundary's measurement [s].
@@ -24,12 +25,9 @@ pub const INITIAL_HEAD: (f64, f64) = (-100.0, -1e-3);
 pub const FORECAST_STEP_S: (f64, f64) = (60.0, 86_400.0);
 /// Largest forecast span [s]: 30 days.
 pub const FORECAST_SPAN_S: f64 = 30.0 * 86_400.0;
-/// Largest ET0 rate of a forecast [mm/h] (the highest hourly reference
-/// evapotranspiration observed is about 1.5 mm/h).
-pub const MAX_ET0_MM_PER_H: f64 = 2.0;
-/// Largest precipitation rate of a forecast [mm/h] (the world record for one
-/// hour is about 305 mm).
-pub const MAX_PRECIP_MM_PER_H: f64 = 400.0;
+/// Largest ET0 and precipitation rates of a forecast [mm/h]: those of a
+/// weather file (defined beside it, where the CLI checks them too).
+pub use crate::weather::{MAX_ET0_MM_PER_H, MAX_PRECIP_MM_PER_H};
 /// Every timestamp lies in the years 2000 … 2199.
 pub const EARLIEST_YEAR: i32 = 2000;
 pub const LATEST_YEAR: i32 = 2199;
