@@ -98,7 +98,7 @@ enum Command {
         /// Folder of the generated-data cache.
         #[arg(long, default_value = "data/cache")]
         cache: PathBuf,
-        /// Validation samples per set (smaller for smoke runs).
+        /// Validation samples per set (smaller for smoke runs), 200 … 100000.
         #[arg(long, default_value_t = 5000)]
         samples: usize,
         /// Seeds per design of E6, E7 and et0 (the seeds S … S + N − 1,
@@ -144,7 +144,8 @@ enum Command {
         /// Seed of the noise, the forecast error and the estimator.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Sensor depths [m], comma-separated (default: 0.125, the rooting depth).
+        /// Sensor depths [m], comma-separated, each in [0, 0.5], at most 16
+        /// (default: 0.125, the rooting depth).
         #[arg(long, value_delimiter = ',')]
         sensor_depths: Option<Vec<f64>>,
         /// Write the step-by-step trace CSV here.

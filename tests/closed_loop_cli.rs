@@ -92,7 +92,19 @@ fn the_oracle_and_a_surrogate_run_on_sandy_loam() {
 
 #[test]
 fn bad_arguments_exit_2_with_a_message() {
-    let cases: [(&[&str], &str); 8] = [
+    let seventeen = ["0.1"; 17].join(",");
+    let cases: [(&[&str], &str); 9] = [
+        (
+            &[
+                "--plant",
+                "loam",
+                "--controller",
+                "richards",
+                "--sensor-depths",
+                &seventeen,
+            ],
+            "at most 16 sensors, got 17",
+        ),
         (
             &["--plant", "loam", "--controller", "oracle", "--steps", "0"],
             "1 … 10000, got 0",

@@ -203,6 +203,22 @@ fn unknown_soil_and_experiment_are_clear_errors() {
     let out = rootzone(&["experiment", "e9"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("e9"));
+    for samples in ["199", "100001"] {
+        let out = rootzone(&[
+            "experiment",
+            "e1",
+            "--samples",
+            samples,
+            "--out",
+            "/nonexistent/x",
+        ]);
+        assert_eq!(out.status.code(), Some(2), "--samples {samples}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains("--samples must be in 200 … 100000") && err.contains(samples),
+            "{err}"
+        );
+    }
     for seeds in ["0", "501"] {
         let out = rootzone(&[
             "experiment",

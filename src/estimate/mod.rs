@@ -58,6 +58,10 @@ use crate::soil::{
 pub use analysis::Scheme;
 pub use prior::{PARAMETERS, Prior};
 
+/// Most sensors a field's estimate assimilates (a daemon field's and a
+/// `closed-loop` run's): each adds a row to every analysis.
+pub const MAX_SENSORS: usize = 16;
+
 /// Heads are kept within these bounds [m] after an analysis.
 pub const HEAD_BOUNDS: (f64, f64) = (-1.0e4, 0.5);
 

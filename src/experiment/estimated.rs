@@ -180,6 +180,13 @@ pub fn run_case(case: &Case) -> Result<ObservedRun, String> {
     if case.sensor_depths.is_empty() {
         return Err("at least one sensor depth is needed".into());
     }
+    if case.sensor_depths.len() > crate::estimate::MAX_SENSORS {
+        return Err(format!(
+            "--sensor-depths: at most {} sensors, got {}",
+            crate::estimate::MAX_SENSORS,
+            case.sensor_depths.len()
+        ));
+    }
     let zone = ZoneSettings::default_for(&case.plant);
     let field = FieldSettings {
         soil: case.plant,

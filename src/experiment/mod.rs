@@ -108,6 +108,13 @@ pub const DEFAULT_SEEDS: u64 = 100;
 /// The most seeds per design `--seeds` accepts.
 pub const MAX_SEEDS: u64 = 500;
 
+/// The range of `--samples`, the samples per validation set: enough for
+/// a window and a 20-step horizon to be scored many times over, and at
+/// most 20 times the default (5,000), which bounds the simulation and the
+/// memory of a run (the sets are simulated and held whole).
+pub const MIN_SAMPLES: usize = 200;
+pub const MAX_SAMPLES: usize = 100_000;
+
 /// An experiment could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum ExperimentError {
@@ -144,9 +151,9 @@ pub fn run_experiment(
     id: ExperimentId,
     options: &ExperimentOptions,
 ) -> Result<Vec<PathBuf>, ExperimentError> {
-    if options.samples < 200 {
+    if !(MIN_SAMPLES..=MAX_SAMPLES).contains(&options.samples) {
         return Err(ExperimentError::Input(format!(
-            "--samples must be at least 200, got {}",
+            "--samples must be in {MIN_SAMPLES} … {MAX_SAMPLES}, got {}",
             options.samples
         )));
     }

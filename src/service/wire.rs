@@ -552,8 +552,9 @@ impl SensorSpec {
 /// Depth of the simulated column [m] (MODEL.md §1).
 pub const COLUMN_DEPTH: f64 = 0.5;
 
-/// Most sensors per field.
-pub const MAX_SENSORS: usize = 16;
+/// Most sensors per field (the estimator's bound, which `closed-loop`
+/// keeps too).
+pub use crate::estimate::MAX_SENSORS;
 
 /// The prediction model of a field's controller.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
