@@ -656,14 +656,23 @@ async fn control_loop(state: Arc<AppState>, id: i64, cancel: CancellationToken, 
             _ = cancel.cancelled() => return,
         }
     }
+    // the boundary this task last came to, to see one it slept through
+    let mut last: Option<DateTime<Utc>> = None;
     if start == Start::CatchUp {
+        // a boundary that passes while the catch-up looks (its store
+        // reads take clock time, much of it on an accelerated clock) is
+        // one it did not see: the loop's first turn sees it through `last`
+        if let Ok(Some(field)) = state.engine.store.field(id) {
+            last = Some(clock::boundary_at_or_before(
+                state.clock.now(),
+                field.spec.control_period_s,
+            ));
+        }
         tokio::select! {
             _ = catch_up(&state, id) => {}
             _ = cancel.cancelled() => return,
         }
     }
-    // the boundary this task last came to, to see one it slept through
-    let mut last: Option<DateTime<Utc>> = None;
     loop {
         let Ok(Some(field)) = state.engine.store.field(id) else {
             return;
