@@ -203,34 +203,34 @@ fn unknown_soil_and_experiment_are_clear_errors() {
     let out = rootzone(&["experiment", "e9"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("e9"));
-    for samples in ["199", "100001"] {
-        let out = rootzone(&[
-            "experiment",
+    // each option's range, just past either end
+    for (experiment, option, value, needle) in [
+        (
             "e1",
             "--samples",
-            samples,
-            "--out",
-            "/nonexistent/x",
-        ]);
-        assert_eq!(out.status.code(), Some(2), "--samples {samples}");
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(
-            err.contains("--samples must be in 200 … 100000") && err.contains(samples),
-            "{err}"
-        );
-    }
-    for seeds in ["0", "501"] {
+            "199",
+            "--samples must be in 200 … 100000",
+        ),
+        (
+            "e1",
+            "--samples",
+            "100001",
+            "--samples must be in 200 … 100000",
+        ),
+        ("e7", "--seeds", "0", "--seeds"),
+        ("e7", "--seeds", "501", "--seeds"),
+    ] {
         let out = rootzone(&[
             "experiment",
-            "e7",
-            "--seeds",
-            seeds,
+            experiment,
+            option,
+            value,
             "--out",
             "/nonexistent/x",
         ]);
-        assert_eq!(out.status.code(), Some(2), "--seeds {seeds}");
+        assert_eq!(out.status.code(), Some(2), "{option} {value}");
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains("--seeds") && err.contains(seeds), "{err}");
+        assert!(err.contains(needle) && err.contains(value), "{err}");
     }
 }
 

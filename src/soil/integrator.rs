@@ -457,6 +457,15 @@ impl Workspace {
             tangent_stage: z.clone(),
         }
     }
+
+    /// Takes the trial as a line search's base point, with its Newton
+    /// coordinates (`base_coordinate`), computed once for all the trials.
+    fn set_base(&mut self, coordinates: &Coordinates) {
+        self.base.copy_from_slice(&self.trial);
+        for (u, &h) in self.base_coordinate.iter_mut().zip(&self.base) {
+            *u = coordinates.coordinate(h);
+        }
+    }
 }
 
 enum Step {
@@ -1201,14 +1210,16 @@ impl Integrator {
                 norm = residual(w);
                 continue;
             }
-            w.base.copy_from_slice(&w.trial);
+            w.set_base(&coordinates);
             let mut lambda = 1.0;
             loop {
                 for i in 0..n {
                     w.trial[i] = if w.saturated[i] {
                         w.base[i] - lambda * w.update[i]
                     } else {
-                        coordinates.step(w.base[i], lambda * w.update[i]).min(0.0)
+                        coordinates
+                            .step_from(w.base_coordinate[i], w.base[i], lambda * w.update[i])
+                            .min(0.0)
                     };
                 }
                 let next = residual(w);
@@ -1394,11 +1405,8 @@ impl Integrator {
                 w.worst_cell = largest_entry(&w.residual);
                 return false;
             }
-            w.base.copy_from_slice(&w.trial);
+            w.set_base(&coordinates);
             w.base_residual.copy_from_slice(&w.residual);
-            for i in 0..n {
-                w.base_coordinate[i] = coordinates.coordinate(w.base[i]);
-            }
             loop {
                 iterations += 1;
                 self.statistics.newton_iterations += 1;
@@ -1524,10 +1532,7 @@ impl Integrator {
                 flips += 1;
                 residual(w);
             }
-            w.base.copy_from_slice(&w.trial);
-            for i in 0..n {
-                w.base_coordinate[i] = coordinates.coordinate(w.base[i]);
-            }
+            w.set_base(&coordinates);
             w.side.fill(Side::BySign);
             let mut lambda = 1.0;
             loop {
