@@ -11,7 +11,11 @@
 //! driest column there is (water only adds), so where that distance exceeds
 //! a bound, no controller that enters the zone keeps within it.
 //!
-//! `cargo run --release --example zmpc_textures [--work-budget=N|none] [TEXTURE…]`
+//! `cargo run --release --example zmpc_textures [--work-budget=N|none] [--no-fork] [TEXTURE…]`
+//!
+//! `--no-fork` makes every prediction on the solve's own thread (a model
+//! without [`PredictionModel::fork`]): the same plans, the time a solve
+//! takes without its first constant starts predicted beside its warm run.
 //!
 //! The solves' model work (Newton iterations per solve, their cost, and
 //! how many solves the work and the time budget ended) goes to stderr.
@@ -30,6 +34,10 @@ struct Counted {
     jacobians: usize,
     prediction_time: f64,
     jacobian_time: f64,
+    /// Whether the model forks (see the module docs), and the forks'
+    /// predictions the solve adopted.
+    fork: bool,
+    forked: usize,
 }
 
 impl PredictionModel for Counted {
@@ -60,6 +68,16 @@ impl PredictionModel for Counted {
 
     fn monotone_in_supply(&self) -> bool {
         self.inner.monotone_in_supply()
+    }
+
+    fn fork(&self, interrupt: Interrupt) -> Option<Box<dyn PredictionModel>> {
+        self.fork
+            .then(|| Box::new(self.inner.forked(interrupt)) as Box<dyn PredictionModel>)
+    }
+
+    fn book_work(&mut self, work: usize) {
+        self.forked += 1;
+        self.inner.book_work(work);
     }
 
     fn set_work_budget(&mut self, budget: Option<usize>) {
@@ -100,14 +118,21 @@ fn main() {
                 })
             })
         });
+    let fork = match only.iter().position(|a| a == "--no-fork") {
+        Some(i) => {
+            only.remove(i);
+            false
+        }
+        None => true,
+    };
     let dry = WeatherSeries::parse(DRY_SCENARIO, "weather-dry.csv").expect("embedded weather");
     let rain = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").expect("embedded weather");
     println!(
         "| texture | weather | I_T mm | entered at | dry after entry | wet after entry | median ms | p95 ms | \
-         max ms | predictions/solve | ms each | Jacobians/solve | ms each | iterations/solve | \
+         max ms | predictions/solve | forked/solve | ms each | Jacobians/solve | ms each | iterations/solve | \
          not converged | fallbacks | wet after entry, never irrigated |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for texture in Texture::ALL {
         if !only.is_empty() && !only.contains(&texture.to_string()) {
             continue;
@@ -131,6 +156,7 @@ fn main() {
             let mut mpc = ZoneMpc::new(settings);
             let (mut irrigation, mut times) = (0.0, Vec::new());
             let (mut predictions, mut jacobians, mut iterations, mut unconverged) = (0, 0, 0, 0);
+            let mut forked = 0;
             let (mut prediction_ms, mut jacobian_ms) = (0.0, 0.0);
             let (mut entry, mut dry_excess, mut wet_excess) = (None, 0.0f64, 0.0f64);
             let mut stopped = false;
@@ -144,6 +170,8 @@ fn main() {
                     jacobians: 0,
                     prediction_time: 0.0,
                     jacobian_time: 0.0,
+                    fork,
+                    forked: 0,
                 };
                 let started = Instant::now();
                 let solution = mpc.solve(&mut model);
@@ -152,6 +180,7 @@ fn main() {
                 budget_cut += usize::from(solution.status == SolveStatus::WorkBudget);
                 time_cut += usize::from(solution.status == SolveStatus::TimeBudget);
                 predictions += model.predictions;
+                forked += model.forked;
                 jacobians += model.jacobians;
                 prediction_ms += model.prediction_time;
                 jacobian_ms += model.jacobian_time;
@@ -190,7 +219,7 @@ fn main() {
             sorted.sort_by(f64::total_cmp);
             println!(
                 "| {texture} | {name} | {irrigation:.2} | {} | {:.1e} | {:.1e} | {:.1} | {:.1} | {:.1} | \
-                 {:.1} | {:.2} | {:.1} | {:.2} | {:.1} | {unconverged} | {fallbacks} | {:.1e} |",
+                 {:.1} | {:.1} | {:.2} | {:.1} | {:.2} | {:.1} | {unconverged} | {fallbacks} | {:.1e} |",
                 entry.map_or("never".to_string(), |k| k.to_string()),
                 dry_excess.max(0.0),
                 wet_excess.max(0.0),
@@ -198,6 +227,7 @@ fn main() {
                 sorted[((0.95 * n) as usize).min(sorted.len() - 1)],
                 sorted[sorted.len() - 1],
                 predictions as f64 / n,
+                forked as f64 / n,
                 prediction_ms / predictions.max(1) as f64,
                 jacobians as f64 / n,
                 jacobian_ms / jacobians.max(1) as f64,

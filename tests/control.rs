@@ -715,3 +715,269 @@ fn default_zones_are_the_head_band_of_each_soil() {
         assert!(z.low0 < z.up0 && z.low0 > soil.residual_water_content);
     }
 }
+
+/// A model that is not smooth at the zero plan: that plan predicts θ just
+/// below the zone, every other plan, however near, far above it, while its
+/// Jacobian says that irrigation raises θ smoothly. No trial step can be
+/// accepted. The run must see that the misses do not shrink with the step
+/// and stop, not shrink the trust region from 0.5 to the step tolerance
+/// (10 rejections, each a prediction).
+struct Jumpy {
+    evaluations: usize,
+}
+
+impl PredictionModel for Jumpy {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        self.evaluations += 1;
+        out.fill(if plan.iter().all(|&u| u == 0.0) {
+            0.17
+        } else {
+            0.30
+        });
+        Ok(())
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        self.predict(plan, out)?;
+        let n = out.len();
+        for k in 0..n {
+            for j in 0..n {
+                jac[k * n + j] = if j <= k { 2000.0 } else { 0.0 };
+            }
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_run_on_a_model_that_jumps_stops_without_shrinking_to_the_tolerance() {
+    let settings = MpcSettings {
+        starts: 1,
+        ..MpcSettings::default()
+    };
+    let mut model = Jumpy { evaluations: 0 };
+    let sol = ZoneMpc::new(settings).solve(&mut model);
+    assert_eq!(sol.status, SolveStatus::Converged);
+    assert!(sol.plan.iter().all(|&u| u == 0.0), "{:?}", sol.plan);
+    assert!(sol.predicted.iter().all(|&y| y == 0.17));
+    // 0.5 · 4^−k < 1e-6 takes 10 rejections: the test stops at the second
+    // rejection below a step of 1e-3 (the sixth and seventh)
+    assert!(
+        (2..=8).contains(&sol.iterations),
+        "{} iterations, {} evaluations",
+        sol.iterations,
+        model.evaluations
+    );
+    assert_eq!(model.evaluations, sol.iterations + 1);
+}
+
+/// A Richards model without a fork: every prediction on the solve's thread.
+struct OnOneThread(rootzone::control::RichardsModel);
+
+impl PredictionModel for OnOneThread {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        self.0.predict(plan, out)
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        self.0.predict_with_jacobian(plan, out, jac)
+    }
+
+    fn set_interrupt(&mut self, interrupt: Option<rootzone::soil::Interrupt>) {
+        self.0.set_interrupt(interrupt);
+    }
+
+    fn set_work_budget(&mut self, budget: Option<usize>) {
+        self.0.set_work_budget(budget);
+    }
+
+    fn work_spent(&self) -> usize {
+        self.0.work_spent()
+    }
+
+    fn out_of_work(&self) -> bool {
+        self.0.out_of_work()
+    }
+
+    fn monotone_in_supply(&self) -> bool {
+        self.0.monotone_in_supply()
+    }
+}
+
+/// A forking Richards model whose first evaluation waits until its forks
+/// have predicted, so that the solve adopts their predictions (the pool
+/// would otherwise start them whenever it is free); it counts what it
+/// adopted.
+struct Forking {
+    inner: rootzone::control::RichardsModel,
+    forks_done: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    waited: bool,
+    adopted: usize,
+}
+
+/// A fork that says when it has predicted.
+struct Fork(
+    rootzone::control::RichardsModel,
+    std::sync::Arc<std::sync::atomic::AtomicUsize>,
+);
+
+impl PredictionModel for Fork {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        let r = self.0.predict(plan, out);
+        self.1.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        r
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        self.0.predict_with_jacobian(plan, out, jac)
+    }
+
+    fn work_spent(&self) -> usize {
+        self.0.work_spent()
+    }
+}
+
+impl PredictionModel for Forking {
+    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
+        self.inner.predict(plan, out)
+    }
+
+    fn predict_with_jacobian(
+        &mut self,
+        plan: &[f64],
+        out: &mut [f64],
+        jac: &mut [f64],
+    ) -> Result<(), ModelError> {
+        if !self.waited {
+            self.waited = true;
+            let since = std::time::Instant::now();
+            while self.forks_done.load(std::sync::atomic::Ordering::SeqCst) < 2
+                && since.elapsed() < std::time::Duration::from_secs(60)
+            {
+                std::thread::sleep(std::time::Duration::from_millis(1));
+            }
+        }
+        self.inner.predict_with_jacobian(plan, out, jac)
+    }
+
+    fn set_interrupt(&mut self, interrupt: Option<rootzone::soil::Interrupt>) {
+        self.inner.set_interrupt(interrupt);
+    }
+
+    fn set_work_budget(&mut self, budget: Option<usize>) {
+        self.inner.set_work_budget(budget);
+    }
+
+    fn work_spent(&self) -> usize {
+        self.inner.work_spent()
+    }
+
+    fn out_of_work(&self) -> bool {
+        self.inner.out_of_work()
+    }
+
+    fn monotone_in_supply(&self) -> bool {
+        self.inner.monotone_in_supply()
+    }
+
+    fn fork(&self, interrupt: rootzone::soil::Interrupt) -> Option<Box<dyn PredictionModel>> {
+        Some(Box::new(Fork(
+            self.inner.forked(interrupt),
+            self.forks_done.clone(),
+        )))
+    }
+
+    fn book_work(&mut self, work: usize) {
+        self.adopted += 1;
+        self.inner.book_work(work);
+    }
+}
+
+/// The constant starts a solve predicts on other threads while its warm
+/// run goes on change nothing: on three textures in rain, warm-started,
+/// with no work budget and with budgets that run out during the solve,
+/// the solve that adopts its forks' predictions gives the plan, the
+/// predictions, the objective, the status, the iterations and the work of
+/// the solve that makes every prediction itself.
+#[test]
+fn predicting_the_first_starts_on_other_threads_changes_no_solve() {
+    use rootzone::control::RichardsModel;
+    use rootzone::soil::{Field, FieldSettings, Texture};
+    use rootzone::weather::{RAIN_SCENARIO, WeatherSeries};
+    let weather = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").unwrap();
+    let mut adopted = 0;
+    for texture in [Texture::SandyLoam, Texture::Loam, Texture::Clay] {
+        let soil = texture.parameters();
+        let field = Field::new(FieldSettings {
+            soil,
+            ..FieldSettings::default()
+        })
+        .unwrap();
+        let forecast = &weather.steps()[15..35];
+        let base = MpcSettings {
+            zone: ZoneSettings::default_for(&soil),
+            theta_r: soil.residual_water_content,
+            theta_s: soil.saturated_water_content,
+            time_budget: std::time::Duration::from_secs(3600),
+            work_budget: None,
+            ..MpcSettings::default()
+        };
+        // a first solve, so that the compared ones are warm-started
+        let previous = ZoneMpc::new(base)
+            .solve(&mut OnOneThread(RichardsModel::new(&field, forecast)))
+            .plan;
+        let mut alone = OnOneThread(RichardsModel::new(&field, forecast));
+        let mut free = ZoneMpc::new(base);
+        free.remember(previous.clone());
+        free.solve(&mut alone);
+        let total = alone.work_spent();
+        for budget in [None, Some(total), Some(total - 1), Some(3 * total / 4)] {
+            let settings = MpcSettings {
+                work_budget: budget,
+                ..base
+            };
+            let mut one = ZoneMpc::new(settings);
+            one.remember(previous.clone());
+            let mut two = ZoneMpc::new(settings);
+            two.remember(previous.clone());
+            let mut alone = OnOneThread(RichardsModel::new(&field, forecast));
+            let expected = one.solve(&mut alone);
+            let mut forking = Forking {
+                inner: RichardsModel::new(&field, forecast),
+                forks_done: Default::default(),
+                waited: false,
+                adopted: 0,
+            };
+            let got = two.solve(&mut forking);
+            let case = format!("{texture}, budget {budget:?}");
+            assert_eq!(got.plan, expected.plan, "{case}");
+            assert_eq!(got.predicted, expected.predicted, "{case}");
+            assert_eq!(got.status, expected.status, "{case}");
+            assert_eq!(got.iterations, expected.iterations, "{case}");
+            assert_eq!(
+                got.objective.to_bits(),
+                expected.objective.to_bits(),
+                "{case}"
+            );
+            assert_eq!(forking.work_spent(), alone.work_spent(), "{case}");
+            adopted += forking.adopted;
+        }
+    }
+    // the forks' predictions were used, not only made
+    assert!(adopted >= 6, "{adopted} predictions adopted");
+}

@@ -49,6 +49,20 @@ pub trait PredictionModel: Send {
         false
     }
 
+    /// An independent copy of the model, for evaluations on another
+    /// thread beside this one's (the zone MPC predicts its first constant
+    /// starts while its warm run goes on): the same state and forecast, no
+    /// work budget, `interrupt` as its interrupt. None where that does not
+    /// pay (the surrogates' evaluations take microseconds).
+    fn fork(&self, _interrupt: Interrupt) -> Option<Box<dyn PredictionModel>> {
+        None
+    }
+
+    /// Books against the budget the `work` of one evaluation that a fork
+    /// made and the caller adopts as this model's own: the budget is then
+    /// where the evaluation made here would have left it.
+    fn book_work(&mut self, _work: usize) {}
+
     /// Whether more irrigation never lowers a predicted θ: for plans
     /// u ≤ v (every move), ŷ(u) ≤ ŷ(v) at every step. True of the
     /// Richards model (water only adds: the comparison principle of
@@ -364,6 +378,19 @@ impl RichardsModel {
         })
     }
 
+    /// A copy for another thread ([`PredictionModel::fork`]): the same
+    /// state, forecast and integrator, no work budget, nothing spent, and
+    /// `interrupt` as its interrupt. An evaluation's result depends only
+    /// on the plan and these (each one starts from a clone of the
+    /// integrator), so the copy predicts what this model would.
+    pub fn forked(&self, interrupt: Interrupt) -> RichardsModel {
+        let mut copy = self.clone();
+        copy.work_budget = None;
+        copy.work_spent = 0;
+        copy.integrator.set_interrupt(Some(interrupt));
+        copy
+    }
+
     /// One evaluation, its Newton iterations booked against the budget.
     fn run(
         &mut self,
@@ -455,17 +482,25 @@ impl PredictionModel for RichardsModel {
         self.integrator.set_interrupt(interrupt);
     }
 
-    /// Counted in Newton iterations (each one tridiagonal solve), the
-    /// integrator's unit of work.
     fn monotone_in_supply(&self) -> bool {
         true
     }
 
+    /// Counted in Newton iterations (each one tridiagonal solve), the
+    /// integrator's unit of work.
     fn set_work_budget(&mut self, budget: Option<usize>) {
         self.work_budget = budget;
         if budget.is_some() {
             self.work_spent = 0;
         }
+    }
+
+    fn fork(&self, interrupt: Interrupt) -> Option<Box<dyn PredictionModel>> {
+        Some(Box::new(self.forked(interrupt)))
+    }
+
+    fn book_work(&mut self, work: usize) {
+        self.work_spent += work;
     }
 
     fn work_spent(&self) -> usize {
