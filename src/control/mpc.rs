@@ -24,8 +24,9 @@
 //! The iteration stops when a step changes no input by more than
 //! `step_tolerance`, the predicted decrease is negligible, or three accepted
 //! steps in a row each gain less than that tolerance (converged), when
-//! the model is not smooth at the plan (below), at the iteration cap, when the model's work budget is spent, or at the time
-//! budget, and always returns the best plan evaluated.
+//! the model is not smooth at the plan (converged, see `NONSMOOTH_STEP`),
+//! at the iteration cap, when the model's work budget is spent, or at the
+//! time budget, and always returns the best plan evaluated.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -277,10 +278,10 @@ struct Forked {
 /// it reaches that plan before the solve asks for it (the solve then waits
 /// for it), else by the solve itself (the job, when it gets there, finds
 /// the plan taken and skips it); a busy pool therefore never delays a
-/// solve by more than the prediction under way. The solve uses a fork's prediction only where the model would
-/// have made the same one, so a solve's result is the same with or without
-/// the pool (`tests/control.rs`). Dropping it tells jobs still running to
-/// stop.
+/// solve by more than the prediction under way. The solve uses a fork's
+/// prediction only where the model would have made the same one, so a
+/// solve's result is the same with or without the pool
+/// (`tests/control.rs`). Dropping it tells the job to stop.
 struct Speculation {
     shared: Arc<SpeculationState>,
 }
