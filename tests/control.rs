@@ -556,7 +556,7 @@ fn the_time_budget_binds_richards_solves_on_every_texture() {
 }
 
 /// A Richards model whose every evaluation is made slow, as on a loaded
-/// machine.
+/// machine, and made on the solve's own thread (it has no fork).
 struct Slowed(rootzone::control::RichardsModel, std::time::Duration);
 
 impl PredictionModel for Slowed {
@@ -589,6 +589,10 @@ impl PredictionModel for Slowed {
 
     fn out_of_work(&self) -> bool {
         self.0.out_of_work()
+    }
+
+    fn monotone_in_supply(&self) -> bool {
+        self.0.monotone_in_supply()
     }
 }
 
@@ -776,44 +780,6 @@ fn a_run_on_a_model_that_jumps_stops_without_shrinking_to_the_tolerance() {
     assert_eq!(model.evaluations, sol.iterations + 1);
 }
 
-/// A Richards model without a fork: every prediction on the solve's thread.
-struct OnOneThread(rootzone::control::RichardsModel);
-
-impl PredictionModel for OnOneThread {
-    fn predict(&mut self, plan: &[f64], out: &mut [f64]) -> Result<(), ModelError> {
-        self.0.predict(plan, out)
-    }
-
-    fn predict_with_jacobian(
-        &mut self,
-        plan: &[f64],
-        out: &mut [f64],
-        jac: &mut [f64],
-    ) -> Result<(), ModelError> {
-        self.0.predict_with_jacobian(plan, out, jac)
-    }
-
-    fn set_interrupt(&mut self, interrupt: Option<rootzone::soil::Interrupt>) {
-        self.0.set_interrupt(interrupt);
-    }
-
-    fn set_work_budget(&mut self, budget: Option<usize>) {
-        self.0.set_work_budget(budget);
-    }
-
-    fn work_spent(&self) -> usize {
-        self.0.work_spent()
-    }
-
-    fn out_of_work(&self) -> bool {
-        self.0.out_of_work()
-    }
-
-    fn monotone_in_supply(&self) -> bool {
-        self.0.monotone_in_supply()
-    }
-}
-
 /// A forking Richards model whose first evaluation waits until its forks
 /// have predicted, so that the solve adopts their predictions (the pool
 /// would otherwise start them whenever it is free); it counts what it
@@ -919,6 +885,7 @@ fn predicting_the_first_starts_on_other_threads_changes_no_solve() {
     use rootzone::control::RichardsModel;
     use rootzone::soil::{Field, FieldSettings, Texture};
     use rootzone::weather::{RAIN_SCENARIO, WeatherSeries};
+    use std::time::Duration;
     let weather = WeatherSeries::parse(RAIN_SCENARIO, "weather-rain.csv").unwrap();
     let mut adopted = 0;
     for texture in [Texture::SandyLoam, Texture::Loam, Texture::Clay] {
@@ -933,15 +900,18 @@ fn predicting_the_first_starts_on_other_threads_changes_no_solve() {
             zone: ZoneSettings::default_for(&soil),
             theta_r: soil.residual_water_content,
             theta_s: soil.saturated_water_content,
-            time_budget: std::time::Duration::from_secs(3600),
+            time_budget: Duration::from_secs(3600),
             work_budget: None,
             ..MpcSettings::default()
         };
         // a first solve, so that the compared ones are warm-started
         let previous = ZoneMpc::new(base)
-            .solve(&mut OnOneThread(RichardsModel::new(&field, forecast)))
+            .solve(&mut Slowed(
+                RichardsModel::new(&field, forecast),
+                Duration::ZERO,
+            ))
             .plan;
-        let mut alone = OnOneThread(RichardsModel::new(&field, forecast));
+        let mut alone = Slowed(RichardsModel::new(&field, forecast), Duration::ZERO);
         let mut free = ZoneMpc::new(base);
         free.remember(previous.clone());
         free.solve(&mut alone);
@@ -955,7 +925,7 @@ fn predicting_the_first_starts_on_other_threads_changes_no_solve() {
             one.remember(previous.clone());
             let mut two = ZoneMpc::new(settings);
             two.remember(previous.clone());
-            let mut alone = OnOneThread(RichardsModel::new(&field, forecast));
+            let mut alone = Slowed(RichardsModel::new(&field, forecast), Duration::ZERO);
             let expected = one.solve(&mut alone);
             let mut forking = Forking {
                 inner: RichardsModel::new(&field, forecast),
